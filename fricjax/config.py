@@ -1,0 +1,184 @@
+"""Run configuration from TOML: model terms, parameter specification, and the settings
+tables of each stage (``[preprocess]``, ``[search]``, ``[anneal]``, ``[refine]``).
+
+Layout::
+
+    [model]
+    terms = ["harmonic_drive", "stribeck_friction"]
+    [model.harmonic_drive]          # options of a term (optional)
+    harmonics = 10
+    [params]                        # one entry per parameter the terms read
+    F0 = { unit = "N", lower = 216.35, upper = 649.05, init = 432.7 }
+    delta = { unit = "1", value = 1.0 }          # value => fixed
+    mass = { unit = "kg", lower = 50, upper = 150, init = 95 }   # optional: mass free
+
+Every mistake (unknown term or parameter, missing parameter, lower > upper, fixed value
+outside bounds, wrong unit, unknown table key) is refused with one line naming the file.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fricjax.errors import FricjaxError, where
+from fricjax.model.registry import TERMS, make_term
+from fricjax.model.system import MASS, Model
+from fricjax.params import Param, ParamSpec
+
+SECTIONS = ("model", "params", "preprocess", "search", "anneal", "refine", "diagnose")
+PARAM_KEYS = ("unit", "lower", "upper", "init", "value", "free")
+
+
+@dataclass(frozen=True)
+class Config:
+    """A parsed configuration. ``spec`` lacks ``mass`` when the recording must supply it."""
+
+    model: Model
+    spec: ParamSpec
+    tables: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    source: str = ""
+    text: str = ""
+
+    def table(self, name: str) -> Mapping[str, Any]:
+        """A settings table (``preprocess``, ``search``, ...), empty if absent."""
+        return self.tables.get(name, {})
+
+    @property
+    def mass_in_spec(self) -> bool:
+        return "mass" in self.spec
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML config file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise FricjaxError(f"{path}: config file not found") from None
+    except OSError as err:
+        raise FricjaxError(f"{path}: cannot read config ({err.strerror})") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise FricjaxError(f"{path}: invalid TOML ({err})") from None
+    return parse_config(raw, source=str(path), text=text)
+
+
+def parse_config(raw: Mapping[str, Any], *, source: str = "config", text: str = "") -> Config:
+    """Build a :class:`Config` from an already-parsed TOML mapping."""
+    for key in raw:
+        if key not in SECTIONS:
+            raise FricjaxError(
+                f"{where(source, key)}: unknown section (known: {', '.join(SECTIONS)})"
+            )
+    model = _parse_model(raw.get("model"), source)
+    spec = _parse_params(raw.get("params", {}), model, source)
+    tables = {k: dict(v) for k, v in raw.items() if k not in ("model", "params")}
+    return Config(model=model, spec=spec, tables=tables, source=source, text=text)
+
+
+def _parse_model(table: Any, source: str) -> Model:
+    if not isinstance(table, Mapping) or "terms" not in table:
+        raise FricjaxError(f"{where(source, '[model].terms')}: missing list of model terms")
+    names = table["terms"]
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise FricjaxError(f"{where(source, '[model].terms')}: must be a non-empty list of names")
+    for key in table:
+        if key != "terms" and key not in names:
+            raise FricjaxError(f"{where(source, f'[model].{key}')}: not a term of this model")
+    terms = []
+    for name in names:
+        if name not in TERMS:
+            raise FricjaxError(
+                f"{where(source, '[model].terms')}: unknown term {name!r} "
+                f"(known: {', '.join(sorted(TERMS))})"
+            )
+        options = table.get(name, {})
+        try:
+            terms.append(make_term(name, options))
+        except TypeError as err:
+            raise FricjaxError(f"{where(source, f'[model.{name}]')}: bad option ({err})") from None
+    return Model(tuple(terms))
+
+
+def _units_match(expected: str, given: str) -> bool:
+    if expected.endswith("/u"):  # per unit of the recorded input: any "N/<unit>"
+        return given.startswith(expected[:-1])
+    norm = {"N*s/m": {"N*s/m", "Ns/m", "N.s/m", "N·s/m"}, "1": {"1", "", "-"}}
+    return given in norm.get(expected, {expected})
+
+
+def _parse_params(table: Mapping[str, Any], model: Model, source: str) -> ParamSpec:
+    defaults = {q.name: q for q in model.parameters()}
+    for name in table:
+        if name not in defaults:
+            raise FricjaxError(
+                f"{where(source, f'[params].{name}')}: unknown parameter for model "
+                f"{model.name} (it takes: {', '.join(defaults)})"
+            )
+    params = []
+    for name, default in defaults.items():
+        if name not in table:
+            if name == MASS.name:
+                continue  # taken from the recording
+            raise FricjaxError(
+                f"{where(source, f'[params].{name}')}: missing (model term needs it; "
+                f"unit {default.unit})"
+            )
+        params.append(_parse_param(name, table[name], default, source))
+    return ParamSpec(tuple(params), source=source)
+
+
+def _parse_param(name: str, entry: Any, default: Param, source: str) -> Param:
+    loc = where(source, f"[params].{name}")
+    if isinstance(entry, int | float):
+        entry = {"value": entry}
+    if not isinstance(entry, Mapping):
+        raise FricjaxError(f"{loc}: must be a number or a table {{unit, lower, upper, init}}")
+    for key in entry:
+        if key not in PARAM_KEYS:
+            raise FricjaxError(f"{loc}: unknown key {key!r} (known: {', '.join(PARAM_KEYS)})")
+    unit = str(entry.get("unit", default.unit))
+    if not _units_match(default.unit, unit):
+        raise FricjaxError(f"{loc}: wrong unit {unit!r}, expected {default.unit!r}")
+
+    def num(key: str) -> float:
+        try:
+            value = float(entry[key])
+        except (TypeError, ValueError):
+            raise FricjaxError(f"{loc}: {key} must be a number, got {entry[key]!r}") from None
+        if not math.isfinite(value):
+            raise FricjaxError(f"{loc}: {key} is not finite ({value})")
+        return value
+
+    free = bool(entry.get("free", "value" not in entry))
+    if not free:
+        if "value" not in entry and "init" not in entry:
+            raise FricjaxError(f"{loc}: fixed parameter needs a value")
+        value = num("value") if "value" in entry else num("init")
+        lower = num("lower") if "lower" in entry else value
+        upper = num("upper") if "upper" in entry else value
+        if lower > upper:
+            raise FricjaxError(f"{loc}: lower bound {lower:g} > upper bound {upper:g}")
+        if not lower <= value <= upper:
+            raise FricjaxError(
+                f"{loc}: fixed value {value:g} outside its bounds [{lower:g}, {upper:g}]"
+            )
+        return Param(name, unit, lower, upper, value, free=False, null=default.null)
+    for key in ("lower", "upper"):
+        if key not in entry:
+            raise FricjaxError(f"{loc}: free parameter needs {key}")
+    lower, upper = num("lower"), num("upper")
+    if lower > upper:
+        raise FricjaxError(f"{loc}: lower bound {lower:g} > upper bound {upper:g}")
+    init = num("init") if "init" in entry else 0.5 * (lower + upper)
+    if not lower <= init <= upper:
+        raise FricjaxError(
+            f"{loc}: initial value {init:g} outside its bounds [{lower:g}, {upper:g}]"
+        )
+    return Param(name, unit, lower, upper, init, free=True, null=default.null)

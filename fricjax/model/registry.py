@@ -1,0 +1,28 @@
+"""Term names usable in a config's ``[model].terms`` list."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from fricjax.model.drive import HarmonicDrive, MeasuredInput
+from fricjax.model.friction import CoulombViscous, StribeckFriction
+from fricjax.model.term import Term
+
+TermFactory = Callable[..., Term]
+
+TERMS: dict[str, TermFactory] = {
+    HarmonicDrive.name: HarmonicDrive,
+    MeasuredInput.name: MeasuredInput,
+    StribeckFriction.name: StribeckFriction,
+    CoulombViscous.name: CoulombViscous,
+}
+
+
+def register(name: str, factory: TermFactory) -> None:
+    """Make a term available to configs (used by the diagnosis catalogue)."""
+    TERMS[name] = factory
+
+
+def make_term(name: str, options: Mapping[str, Any]) -> Term:
+    return TERMS[name](**options)

@@ -1,0 +1,172 @@
+"""Named parameter specifications and the flat-vector <-> named-pytree maps.
+
+Search algorithms see a flat vector ``theta`` of the *free* parameters inside a box
+``[lower, upper]``; model terms see a mapping ``name -> value`` that also holds the fixed
+parameters. :class:`ParamSpec` converts between the two and is static (hashable), so it can
+be closed over by jitted functions while ``theta`` stays a traced array.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, replace
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from fricjax.errors import FricjaxError, where
+
+Named = Mapping[str, Float[Array, "..."]]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One model parameter.
+
+    Attributes:
+        name: identifier used by model terms (``"Fc"``, ``"Fp_3"``, ...).
+        unit: SI unit string (``"N"``, ``"N*s/m"``, ``"rad/s"``, ``"kg"``, ...).
+        lower, upper: prior bounds of the search box (equal for a fixed parameter).
+        init: initial / fixed value.
+        free: whether identification may change it.
+        null: value at which the term has no effect (nested-model tests); NaN if none.
+    """
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    init: float
+    free: bool = True
+    null: float = math.nan
+
+    def fixed_at(self, value: float) -> Param:
+        """This parameter, fixed at ``value``."""
+        return replace(self, init=float(value), free=False)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Ordered collection of :class:`Param`; the free ones form the search vector."""
+
+    params: tuple[Param, ...]
+    source: str = field(default="", compare=False)
+
+    def __post_init__(self) -> None:
+        seen: set[str] = set()
+        for p in self.params:
+            if p.name in seen:
+                raise FricjaxError(f"{where(self.source, 'params')}: {p.name} defined twice")
+            seen.add(p.name)
+            _check_param(p, self.source)
+
+    # -- views ----------------------------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    @property
+    def free(self) -> tuple[Param, ...]:
+        return tuple(p for p in self.params if p.free)
+
+    @property
+    def free_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.free)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+    @property
+    def lower(self) -> np.ndarray:
+        """Lower bounds of the free parameters, shape [d]."""
+        return np.array([p.lower for p in self.free], dtype=np.float64)
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper bounds of the free parameters, shape [d]."""
+        return np.array([p.upper for p in self.free], dtype=np.float64)
+
+    @property
+    def init(self) -> np.ndarray:
+        """Initial values of the free parameters, shape [d]."""
+        return np.array([p.init for p in self.free], dtype=np.float64)
+
+    def __getitem__(self, name: str) -> Param:
+        for p in self.params:
+            if p.name == name:
+                return p
+        raise FricjaxError(f"{where(self.source, 'params')}: unknown parameter {name!r}")
+
+    def __contains__(self, name: object) -> bool:
+        return any(p.name == name for p in self.params)
+
+    # -- conversions ----------------------------------------------------------------------
+    def unflatten(self, theta: Float[Array, " d"]) -> dict[str, Float[Array, ""]]:
+        """Free vector ``theta`` [d] -> ``{name: value}`` for every parameter (fixed included).
+
+        Pure indexing, so it traces under ``jit``/``vmap``/``grad``.
+        """
+        out: dict[str, Float[Array, ""]] = {}
+        i = 0
+        for p in self.params:
+            if p.free:
+                out[p.name] = theta[i]
+                i += 1
+            else:
+                out[p.name] = jnp.asarray(p.init, dtype=jnp.float64)
+        return out
+
+    def flatten(self, named: Mapping[str, float]) -> np.ndarray:
+        """``{name: value}`` -> free vector [d]; missing free names take their ``init``."""
+        unknown = sorted(set(named) - set(self.names))
+        if unknown:
+            raise FricjaxError(
+                f"{where(self.source, 'params')}: unknown parameter {unknown[0]!r} "
+                f"(known: {', '.join(self.names)})"
+            )
+        return np.array([float(named.get(p.name, p.init)) for p in self.free], dtype=np.float64)
+
+    def as_dict(self, theta: Iterable[float] | None = None) -> dict[str, float]:
+        """All parameters as plain floats, the free ones taken from ``theta`` (default init)."""
+        vals = self.init if theta is None else np.asarray(theta, dtype=np.float64)
+        named = self.unflatten(jnp.asarray(vals))
+        return {k: float(v) for k, v in named.items()}
+
+    # -- editing --------------------------------------------------------------------------
+    def with_values(self, values: Mapping[str, float]) -> ParamSpec:
+        """A copy with the initial/fixed values replaced (bounds unchanged, clipped in)."""
+        self.flatten(values)  # name check
+        params = tuple(
+            replace(p, init=float(np.clip(values[p.name], p.lower, p.upper)))
+            if p.name in values
+            else p
+            for p in self.params
+        )
+        return replace(self, params=params)
+
+    def with_fixed(self, values: Mapping[str, float]) -> ParamSpec:
+        """A copy where the named parameters are fixed at the given values."""
+        self.flatten(values)
+        params = tuple(p.fixed_at(values[p.name]) if p.name in values else p for p in self.params)
+        return replace(self, params=params)
+
+    def extended(self, extra: Iterable[Param]) -> ParamSpec:
+        """A copy with ``extra`` parameters appended (names must be new)."""
+        return replace(self, params=self.params + tuple(extra))
+
+
+def _check_param(p: Param, source: str) -> None:
+    loc = where(source, f"[params].{p.name}")
+    for label, value in (("lower", p.lower), ("upper", p.upper), ("init", p.init)):
+        if not math.isfinite(value):
+            raise FricjaxError(f"{loc}: {label} is not a finite number ({value})")
+    if p.lower > p.upper:
+        raise FricjaxError(f"{loc}: lower bound {p.lower:g} > upper bound {p.upper:g}")
+    if not (p.lower <= p.init <= p.upper):
+        what = "fixed value" if not p.free else "initial value"
+        raise FricjaxError(
+            f"{loc}: {what} {p.init:g} outside its bounds [{p.lower:g}, {p.upper:g}]"
+        )

@@ -1,0 +1,18 @@
+"""Shared fixtures: one parsed paper config and the seed's CSAA truth, for every test."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import fricjax  # noqa: F401  (float64 on)
+from fricjax.config import Config, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"
+
+
+@pytest.fixture(scope="session")
+def paper_config() -> Config:
+    return load_config(ROOT / "configs" / "paper.toml")

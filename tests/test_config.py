@@ -1,0 +1,69 @@
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from fricjax.config import Config, load_config
+from fricjax.errors import FricjaxError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_paper_config_has_the_seed_parameters(paper_config: Config) -> None:
+    spec = paper_config.spec
+    assert spec.n_free == 26 and "delta" in spec and not spec["delta"].free
+    assert spec["delta"].init == 1.0
+    csaa = {"F0": 432.7, "Fc": 30.0, "Fv": 3749.9, "Fs": 189.99, "Fp_3": 1118.9, "Fp_10": 9.99}
+    for name, value in csaa.items():
+        assert spec[name].lower == pytest.approx(0.5 * value)
+        assert spec[name].upper == pytest.approx(1.5 * value)
+    assert (spec["vs"].lower, spec["vs"].upper) == (0.02, 0.5)
+    assert spec["omega"].lower == pytest.approx(2 * math.pi * 3)
+    assert spec["omega"].upper == pytest.approx(2 * math.pi * 8)
+    assert spec["phi_7"].lower == pytest.approx(-math.pi)
+
+
+def _write(tmp_path: Path, body: str) -> Path:
+    path = tmp_path / "bad.toml"
+    path.write_text('[model]\nterms = ["coulomb_viscous"]\n[params]\n' + body)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (
+            "Fc = {lower = 0, upper = 1}\nFv = {lower = 0, upper = 1}\nFq = 3\n",
+            r"\[params\].Fq: unknown parameter",
+        ),
+        (
+            "Fc = {lower = 2, upper = 1}\nFv = {lower = 0, upper = 1}\n",
+            r"\[params\].Fc: lower bound 2 > upper bound 1",
+        ),
+        (
+            "Fc = {value = 5, lower = 0, upper = 1}\nFv = {lower = 0, upper = 1}\n",
+            r"\[params\].Fc: fixed value 5 outside its bounds",
+        ),
+        ("Fc = {lower = 0, upper = 1}\n", r"\[params\].Fv: missing"),
+        (
+            'Fc = {unit = "kN", lower = 0, upper = 1}\nFv = {lower = 0, upper = 1}\n',
+            r"\[params\].Fc: wrong unit 'kN'",
+        ),
+        ('Fc = {lower = 0, upper = "x"}\nFv = {lower = 0, upper = 1}\n', r"upper must be a number"),
+    ],
+)
+def test_bad_configs_are_refused_with_one_line(tmp_path: Path, body: str, message: str) -> None:
+    with pytest.raises(FricjaxError, match=message) as err:
+        load_config(_write(tmp_path, body))
+    assert "bad.toml" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_unknown_term_and_missing_file(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('[model]\nterms = ["warp_drive"]\n')
+    with pytest.raises(FricjaxError, match="unknown term 'warp_drive'"):
+        load_config(path)
+    with pytest.raises(FricjaxError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
