@@ -16,3 +16,17 @@ EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"
 @pytest.fixture(scope="session")
 def paper_config() -> Config:
     return load_config(ROOT / "configs" / "paper.toml")
+
+
+@pytest.fixture(scope="session")
+def twin_path() -> Path:
+    return ROOT / "data" / "paper_twin.h5"
+
+
+@pytest.fixture(scope="session")
+def twin_problem(paper_config: Config, twin_path: Path):
+    """The bundled paper twin bound to configs/paper.toml (compiled once per session)."""
+    from fricjax.data.recording import read_recording
+    from fricjax.problem import build_problem
+
+    return build_problem(read_recording(twin_path), paper_config)

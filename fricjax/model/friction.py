@@ -17,12 +17,12 @@ from fricjax.params import Named, Param
 
 
 def stribeck_curve(
-    v: Float[Array, ...],
+    v: Float[Array, "..."],
     Fc: Float[Array, ""],
     Fs: Float[Array, ""],
     vs: Float[Array, ""],
     delta: Float[Array, ""],
-) -> Float[Array, ...]:
+) -> Float[Array, "..."]:
     """Stribeck level ``g(v) = Fc + (Fs − Fc)·exp(−(|v|/vs)^δ)`` [N] (seed eq. 1).
 
     ``(|v|/vs)^δ`` is evaluated through ``exp(δ·log(...))`` with the zero-speed branch kept
@@ -56,11 +56,11 @@ class StribeckFriction(Term):
             Param("Fv", "N*s/m", 0.0, 1e5, 0.0, null=0.0),
         )
 
-    def force(self, p: Named, s: Signals) -> Float[Array, ...]:
+    def force(self, p: Named, s: Signals) -> Float[Array, "..."]:
         level = stribeck_curve(s.v, p["Fc"], p["Fs"], p["vs"], p["delta"])
         return level * sgn(s.v) + p["Fv"] * s.v
 
-    def static(self, p: Named, s: Signals, direction: Float[Array, ...]) -> Float[Array, ...]:
+    def static(self, p: Named, s: Signals, direction: Float[Array, "..."]) -> Float[Array, "..."]:
         return p["Fs"] * direction + jnp.zeros_like(s.t)
 
 
@@ -80,8 +80,8 @@ class CoulombViscous(Term):
             Param("Fv", "N*s/m", 0.0, 1e5, 0.0, null=0.0),
         )
 
-    def force(self, p: Named, s: Signals) -> Float[Array, ...]:
+    def force(self, p: Named, s: Signals) -> Float[Array, "..."]:
         return p["Fc"] * sgn(s.v) + p["Fv"] * s.v
 
-    def static(self, p: Named, s: Signals, direction: Float[Array, ...]) -> Float[Array, ...]:
+    def static(self, p: Named, s: Signals, direction: Float[Array, "..."]) -> Float[Array, "..."]:
         return p["Fc"] * direction + jnp.zeros_like(s.t)

@@ -51,7 +51,7 @@ class Model:
         return Model((*self.terms, *extra))
 
     # -- forces ---------------------------------------------------------------------------
-    def drive(self, p: Named, s: Signals) -> Float[Array, ...]:
+    def drive(self, p: Named, s: Signals) -> Float[Array, "..."]:
         """``F_p`` [N]: sum of the drive terms (seed eq. 4, or g·u)."""
         total = jnp.zeros_like(jnp.asarray(s.t, dtype=jnp.float64))
         for term in self.terms:
@@ -59,7 +59,7 @@ class Model:
                 total = total + term.force(p, s)
         return total
 
-    def friction(self, p: Named, s: Signals) -> Float[Array, ...]:
+    def friction(self, p: Named, s: Signals) -> Float[Array, "..."]:
         """``F_f`` [N]: sum of the friction terms (seed eq. 1), resisting motion."""
         total = jnp.zeros_like(jnp.asarray(s.t, dtype=jnp.float64) * s.v)
         for term in self.terms:
@@ -67,7 +67,7 @@ class Model:
                 total = total + term.force(p, s)
         return total
 
-    def static(self, p: Named, s: Signals, direction: Float[Array, ...]) -> Float[Array, ...]:
+    def static(self, p: Named, s: Signals, direction: Float[Array, "..."]) -> Float[Array, "..."]:
         """Friction limit at rest for impending motion in ``direction`` (±1) [N]."""
         total = jnp.zeros_like(jnp.asarray(s.t, dtype=jnp.float64) * direction)
         for term in self.terms:
@@ -75,7 +75,7 @@ class Model:
                 total = total + term.static(p, s, direction)
         return total
 
-    def force(self, p: Named, s: Signals) -> Float[Array, ...]:
+    def force(self, p: Named, s: Signals) -> Float[Array, "..."]:
         """Model force ``F* = F_p − F_f`` [N] (seed eq. 5)."""
         return self.drive(p, s) - self.friction(p, s)
 

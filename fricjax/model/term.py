@@ -30,10 +30,10 @@ class Signals(NamedTuple):
     simulator. Units: t [s], x [m], v [m/s], u [u_unit of the recording] (zeros if absent).
     """
 
-    t: Float[Array, ...]
-    x: Float[Array, ...]
-    v: Float[Array, ...]
-    u: Float[Array, ...]
+    t: Float[Array, "..."]
+    x: Float[Array, "..."]
+    v: Float[Array, "..."]
+    u: Float[Array, "..."]
 
 
 @dataclass(frozen=True)
@@ -47,11 +47,11 @@ class Term:
         """The parameters this term reads, with units, default bounds and null values."""
         raise NotImplementedError
 
-    def force(self, p: Named, s: Signals) -> Float[Array, ...]:
+    def force(self, p: Named, s: Signals) -> Float[Array, "..."]:
         """Drive force on the body [N] (role "drive") or resisting friction F_f [N]."""
         raise NotImplementedError
 
-    def static(self, p: Named, s: Signals, direction: Float[Array, ...]) -> Float[Array, ...]:
+    def static(self, p: Named, s: Signals, direction: Float[Array, "..."]) -> Float[Array, "..."]:
         """Friction limit at rest for impending motion in ``direction`` (±1) [N].
 
         Equals ``lim_{v→0, sgn v = direction} force``; a drive term has none (zero).
@@ -63,6 +63,6 @@ class Term:
         return tuple(q.name for q in self.parameters())
 
 
-def sgn(v: Float[Array, ...]) -> Float[Array, ...]:
+def sgn(v: Float[Array, "..."]) -> Float[Array, "..."]:
     """sgn(v) with sgn(0) = 0 (seed eq. 1), so friction stays odd in v."""
     return jnp.sign(v)

@@ -1,0 +1,270 @@
+"""The Python API behind every CLI command (usable directly from a notebook)."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fricjax.config import Config, load_config
+from fricjax.data.preprocess import PreprocessSettings, derivatives
+from fricjax.data.recording import Recording, read_recording
+from fricjax.errors import FricjaxError, where
+from fricjax.problem import Problem, build_problem
+
+
+def load(
+    recording: str | Path | Recording, config: str | Path | Config, *, mass: float | None = None
+) -> tuple[Recording, Config, Problem]:
+    """Read a recording and a config and bind them into a :class:`Problem`."""
+    rec = recording if isinstance(recording, Recording) else read_recording(recording, mass=mass)
+    cfg = config if isinstance(config, Config) else load_config(config)
+    return rec, cfg, build_problem(rec, cfg)
+
+
+def inspect_recording(
+    recording: str | Path,
+    *,
+    config: str | Path | None = None,
+    mass: float | None = None,
+    png: str | Path | None = None,
+) -> tuple[dict[str, str], Path]:
+    """Summary of a recording and a PNG of x, v, a and m·a (preprocessed as configured)."""
+    from fricjax.report.plots import plot_signals
+
+    rec = read_recording(recording, mass=mass)
+    table = load_config(config).table("preprocess") if config else {}
+    settings = PreprocessSettings.from_dict(table, source=str(config or "defaults"))
+    d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F, source=str(recording))
+    m = rec.mass
+    force = m * d.a if m is not None else np.full_like(d.a, np.nan)
+    summary = {
+        "file": str(recording),
+        "name": rec.name,
+        "source": rec.source,
+        "samples": str(rec.n),
+        "rate [Hz]": f"{1.0 / rec.dt:.6g}",
+        "duration [s]": f"{rec.duration:.6g}",
+        "mass [kg]": "missing" if m is None else f"{m:g}",
+        "x range [m]": f"{d.x.min():.4g} .. {d.x.max():.4g}",
+        "v range [m/s]": f"{d.v.min():.4g} .. {d.v.max():.4g}",
+        "a range [m/s²]": f"{d.a.min():.4g} .. {d.a.max():.4g}",
+        "velocity reversals": str(int(np.sum(np.diff(np.sign(d.v[np.abs(d.v) > 1e-9])) != 0))),
+        "input u": "none"
+        if rec.u is None
+        else f"{rec.u.min():.4g} .. {rec.u.max():.4g} {rec.u_unit}",
+        "preprocess": f"{settings.method}, order {settings.order}, cutoff {settings.cutoff_hz:g} Hz"
+        if settings.method == "butterworth"
+        else f"savgol, window {settings.savgol_window}, order {settings.savgol_polyorder}",
+        "sha256": rec.sha256()[:16],
+    }
+    if m is not None:
+        summary["m·a range [N]"] = f"{force.min():.4g} .. {force.max():.4g}"
+    out = Path(png) if png else Path(recording).with_suffix(".png")
+    fig = plot_signals(d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out)
+    return summary, fig
+
+
+def read_params(path: str | Path) -> dict[str, float]:
+    """Named parameter values from TOML/JSON (``name = value``) or a results file."""
+    path = Path(path)
+    if not path.exists():
+        raise FricjaxError(f"{where(path)}: parameter file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".h5", ".hdf5"):
+            from fricjax.io.results import read_results
+
+            runs = read_results(path).runs
+            best = min(runs, key=lambda r: r.cost)
+            return best.params
+        if suffix == ".json":
+            raw: Any = json.loads(path.read_text())
+        elif suffix == ".toml":
+            raw = tomllib.loads(path.read_text())
+            raw = raw.get("params", raw)
+        else:
+            raise FricjaxError(f"{where(path)}: parameters must be .toml, .json or results .h5")
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as err:
+        raise FricjaxError(f"{where(path)}: cannot parse ({err})") from None
+    out = {}
+    for key, value in raw.items():
+        if isinstance(value, dict):
+            value = value.get("value", value.get("init"))
+        try:
+            out[key] = float(value)
+        except (TypeError, ValueError):
+            raise FricjaxError(f"{where(path, key)}: not a number ({value!r})") from None
+    return out
+
+
+def cost_at(
+    recording: str | Path,
+    config: str | Path,
+    *,
+    params: str | Path | None = None,
+    mass: float | None = None,
+) -> dict[str, Any]:
+    """Cost (seed eq. 11) and EMS at given parameters; default: a twin's generating truth."""
+    _, _, problem = load(recording, config, mass=mass)
+    if params is not None:
+        named, source = read_params(params), str(params)
+    else:
+        from fricjax.data.twin import read_truth
+
+        truth = read_truth(recording)  # scoring against the generator, never used to fit
+        if truth is None:
+            raise FricjaxError(
+                f"{where(recording)}: not a synthetic twin (no truth): give --params"
+            )
+        named, source = truth, "truth of the twin"
+    fixed_changes = {
+        k: v for k, v in named.items() if k in problem.spec and not problem.spec[k].free
+    }
+    if fixed_changes:
+        problem = _with_fixed(problem, fixed_changes)
+    # a twin's truth also holds generator-only entries (noise_std, seed, model): skipped
+    theta = problem.theta({k: v for k, v in named.items() if k in problem.spec})
+    return {
+        "cost": problem.cost(theta),
+        "ems": problem.ems(theta),
+        "n": problem.n,
+        "source": source,
+        "theta": theta,
+    }
+
+
+def _with_fixed(problem: Problem, values: dict[str, float]) -> Problem:
+    from dataclasses import replace
+
+    spec = problem.spec
+    params = tuple(
+        replace(
+            p,
+            init=float(values[p.name]),
+            lower=min(p.lower, float(values[p.name])),
+            upper=max(p.upper, float(values[p.name])),
+        )
+        if p.name in values and not p.free
+        else p
+        for p in spec.params
+    )
+    return replace(problem, spec=replace(spec, params=params))
+
+
+def identify_recording(
+    recording: str | Path,
+    config: str | Path,
+    *,
+    overrides: dict[str, Any] | None = None,
+    out: str | Path | None = None,
+    mass: float | None = None,
+    on_level: Any = None,
+) -> tuple[Any, Path]:
+    """``fricjax identify``: identify, then write the results file (atomic).
+
+    Ctrl-C during the search stops it cleanly: what was found so far is still refined
+    no further, qualified and written.
+    """
+    from fricjax.identify import IdentifySettings, identify
+    from fricjax.io.results import ResultsFile, provenance, write_results
+
+    rec, cfg, problem = load(recording, config, mass=mass)
+    settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source, overrides=overrides)
+    run = identify(problem, settings, on_level=on_level)
+    path = (
+        Path(out)
+        if out
+        else Path(recording).with_name(
+            f"{Path(recording).stem}_{settings.method}_s{settings.seed}.results.h5"
+        )
+    )
+    attrs = provenance(
+        kind="identify",
+        recording_name=rec.name,
+        recording_path=str(recording),
+        recording_sha256=problem.checksum,
+        config_text=cfg.text,
+        config_path=cfg.source,
+    )
+    write_results(ResultsFile(runs=[run], attrs=attrs), path)
+    return run, path
+
+
+def sweep_recording(
+    recording: str | Path,
+    config: str | Path,
+    *,
+    methods: list[str],
+    schedules: list[str],
+    alphas: list[float],
+    restarts: int = 1,
+    chains: int | None = None,
+    seed: int = 0,
+    refine: bool = True,
+    out: str | Path = "sweep.h5",
+    mass: float | None = None,
+    on_run: Any = None,
+) -> tuple[str, Path]:
+    """``fricjax sweep``: every method x schedule x alpha x restart into one results file.
+
+    All runs share the problem and hence the compiled cost; the file is rewritten after
+    each run, so an interrupted sweep keeps every finished run.
+    """
+    from fricjax.identify import IdentifySettings, identify
+    from fricjax.io.results import ResultsFile, provenance, write_results
+    from fricjax.report.tables import fmt, format_table
+
+    rec, cfg, problem = load(recording, config, mass=mass)
+    attrs = provenance(
+        kind="sweep",
+        recording_name=rec.name,
+        recording_path=str(recording),
+        recording_sha256=problem.checksum,
+        config_text=cfg.text,
+        config_path=cfg.source,
+    )
+    runs = []
+    path = Path(out)
+    try:
+        for method in methods:
+            for schedule in schedules:
+                for alpha in alphas:
+                    for r in range(restarts):
+                        overrides = {
+                            "method": method,
+                            "schedule": schedule,
+                            "alpha": alpha,
+                            "seed": seed + r,
+                            "chains": chains,
+                            "refine": None if refine else False,
+                        }
+                        settings = IdentifySettings.from_tables(
+                            cfg.tables, source=cfg.source, overrides=overrides
+                        )
+                        label = f"{method}_{schedule}_a{alpha:g}_s{seed + r}"
+                        if on_run:
+                            on_run(label)
+                        runs.append(identify(problem, settings, label=label))
+                        write_results(ResultsFile(runs=runs, attrs=attrs), path)
+    except KeyboardInterrupt:
+        if not runs:
+            raise
+    rows = [
+        (
+            r.label,
+            fmt(r.cost, 7),
+            fmt(r.ems, 7),
+            fmt(r.cost_search, 7),
+            str(r.attrs["levels"]),
+            f"{r.attrs['wall_time']:.2f}",
+        )
+        for r in sorted(runs, key=lambda r: r.cost)
+    ]
+    table = format_table(
+        rows, ("run", "cost [N²]", "EMS [N²]", "before refine", "levels", "time [s]")
+    )
+    return table, path

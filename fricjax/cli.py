@@ -1,0 +1,257 @@
+"""Command-line interface: a thin typer layer over the Python API.
+
+Every command maps onto one API call; a user mistake (:class:`FricjaxError`) prints one line
+``error: FILE: FIELD: what is wrong`` on stderr and exits with status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from fricjax.errors import FricjaxError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Identify friction models from recorded motion (JAX), and find what they leave out.",
+)
+
+RecArg = Annotated[Path, typer.Argument(help="Recording (.h5 layout v1 or .csv)")]
+ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="Model config (TOML)")]
+MassOpt = Annotated[
+    float | None, typer.Option("--mass", help="Moving mass [kg] (for CSV or to override)")
+]
+
+
+def _echo_table(rows: list[tuple[str, ...]], header: tuple[str, ...] | None = None) -> None:
+    from fricjax.report.tables import format_table
+
+    typer.echo(format_table(rows, header))
+
+
+@app.command()
+def twin(
+    out: Annotated[Path, typer.Argument(help="Output recording (.h5)")] = Path(
+        "data/paper_twin.h5"
+    ),
+    duration: Annotated[float, typer.Option(help="Record length [s]")] = 0.272,
+    rate: Annotated[float, typer.Option(help="Sampling rate [Hz]")] = 1000.0,
+    noise_std: Annotated[float | None, typer.Option(help="Noise std on x [m]")] = None,
+    seed: Annotated[int, typer.Option(help="Noise seed")] = 0,
+) -> None:
+    """Write a paper-twin recording (seed eq. 5, CSAA column of Tables 1-3; truth in /truth)."""
+    from fricjax.data.twin import DEFAULT_NOISE_STD, write_twin
+
+    std = DEFAULT_NOISE_STD if noise_std is None else noise_std
+    path = write_twin(out, duration=duration, rate=rate, noise_std=std, seed=seed)
+    typer.echo(f"wrote {path} ({round(duration * rate)} samples, noise std {std:g} m)")
+
+
+@app.command()
+def inspect(
+    recording: RecArg,
+    config: Annotated[Path | None, typer.Option("--config", "-c", help="For [preprocess]")] = None,
+    mass: MassOpt = None,
+    png: Annotated[Path | None, typer.Option(help="Figure path (default: REC.png)")] = None,
+) -> None:
+    """Summary table and a PNG of x, v, a and measured force m·a."""
+    from fricjax.api import inspect_recording
+
+    summary, fig = inspect_recording(recording, config=config, mass=mass, png=png)
+    _echo_table([(k, v) for k, v in summary.items()], ("field", "value"))
+    typer.echo(f"figure: {fig}")
+
+
+@app.command("import-mat")
+def import_mat_cmd(
+    mat: Annotated[Path, typer.Argument(help="MATLAB .mat file")],
+    out: Annotated[Path, typer.Argument(help="Output recording (.h5 or .csv)")],
+    map_: Annotated[
+        str, typer.Option("--map", help="field=variable pairs, e.g. t=t,x=qm,u=vir")
+    ] = "t=t,x=qm,u=vir",
+    u_unit: Annotated[str, typer.Option(help="Unit of u (e.g. V)")] = "",
+    mass: MassOpt = None,
+    name: Annotated[str | None, typer.Option(help="Recording name")] = None,
+) -> None:
+    """Import a .mat file onto the recording layout (jittered time base resampled)."""
+    from fricjax.data.importers import import_mat
+    from fricjax.data.recording import write_recording
+
+    mapping: dict[str, str] = {}
+    for pair in map_.split(","):
+        if "=" not in pair:
+            raise FricjaxError(f"--map: {pair!r} is not field=variable")
+        field, var = (s.strip() for s in pair.split("=", 1))
+        mapping[field] = var
+    rec = import_mat(mat, mapping=mapping, mass=mass, u_unit=u_unit, name=name)
+    path = write_recording(rec, out)
+    typer.echo(f"wrote {path}: {rec.n} samples, dt = {rec.dt:g} s; {rec.notes}")
+
+
+@app.command()
+def cost(
+    recording: RecArg,
+    config: ConfigOpt,
+    params: Annotated[
+        Path | None,
+        typer.Option(help="Parameters: TOML/JSON name = value, or a results .h5 (best run)"),
+    ] = None,
+    mass: MassOpt = None,
+) -> None:
+    """Cost (seed eq. 11) and EMS at given parameters (default: a twin's truth)."""
+    from fricjax.api import cost_at
+
+    report = cost_at(recording, config, params=params, mass=mass)
+    typer.echo(f"parameters: {report['source']}")
+    _echo_table(
+        [
+            ("cost [N²]", f"{report['cost']:.6g}"),
+            ("EMS [N²]", f"{report['ems']:.6g}"),
+            ("RMS residual [N]", f"{report['ems'] ** 0.5:.6g}"),
+            ("samples", str(report["n"])),
+        ]
+    )
+
+
+MethodOpt = Annotated[
+    str | None, typer.Option(help="csaa | csaa-gauss | dsaa | dsaa-gray | rdsa (config default)")
+]
+
+
+def _progress(label: str):
+    """A one-line live progress display on stderr (level, temperature, best cost, acceptance)."""
+
+    def on_level(info) -> None:
+        typer.echo(
+            f"\r{label} level {info.level + 1:4d}  T={info.temperature:10.4g}  "
+            f"best={info.best_cost:12.6g}  acc={info.mean_acceptance:5.3f}  "
+            f"evals={info.n_evals:9d}  {info.wall_time:6.1f}s",
+            err=True,
+            nl=False,
+        )
+
+    return on_level
+
+
+@app.command()
+def identify(
+    recording: RecArg,
+    config: ConfigOpt = Path("configs/paper.toml"),
+    method: MethodOpt = None,
+    chains: Annotated[int | None, typer.Option(help="Parallel chains (restarts)")] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed (same seed = same result)")] = None,
+    schedule: Annotated[str | None, typer.Option(help="geometric|boltzmann|cauchy|reheat")] = None,
+    alpha: Annotated[float | None, typer.Option(help="Cooling factor (eq. 16)")] = None,
+    steps_per_level: Annotated[int | None, typer.Option(help="Metropolis steps per level")] = None,
+    max_levels: Annotated[int | None, typer.Option(help="Hard limit on levels")] = None,
+    refine: Annotated[bool, typer.Option(help="Polish with Levenberg-Marquardt")] = True,
+    out: Annotated[Path | None, typer.Option(help="Results file (.h5)")] = None,
+    mass: MassOpt = None,
+    quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
+) -> None:
+    """Identify the config's parameters on a recording (annealing chains + refiner)."""
+    from fricjax.api import identify_recording
+    from fricjax.report.show import run_summary
+
+    overrides = {
+        "method": method,
+        "chains": chains,
+        "seed": seed,
+        "schedule": schedule,
+        "alpha": alpha,
+        "steps_per_level": steps_per_level,
+        "max_levels": max_levels,
+        "refine": None if refine else False,
+    }
+    result, path = identify_recording(
+        recording,
+        config,
+        overrides=overrides,
+        out=out,
+        mass=mass,
+        on_level=None if quiet else _progress(method or "search"),
+    )
+    if not quiet:
+        typer.echo("", err=True)
+    typer.echo(run_summary(result, recording=recording))
+    typer.echo(f"results: {path}")
+
+
+@app.command()
+def show(
+    results: Annotated[Path, typer.Argument(help="Results file (.h5) of identify or sweep")],
+    recording: Annotated[
+        Path | None, typer.Option(help="Twin recording for truth columns (default: from file)")
+    ] = None,
+) -> None:
+    """Print the seed-style Tables 1-4 (one column per run; truth and error for a twin)."""
+    from fricjax.report.show import show_results
+
+    typer.echo(show_results(results, recording=recording))
+
+
+@app.command()
+def sweep(
+    recording: RecArg,
+    config: ConfigOpt = Path("configs/paper.toml"),
+    methods: Annotated[str, typer.Option(help="Comma-separated methods")] = "csaa,dsaa,rdsa",
+    schedules: Annotated[str, typer.Option(help="Comma-separated schedules")] = "geometric",
+    alphas: Annotated[str, typer.Option(help="Comma-separated cooling factors")] = "0.95",
+    restarts: Annotated[int, typer.Option(help="Independent seeds per combination")] = 1,
+    chains: Annotated[int | None, typer.Option(help="Chains per run")] = None,
+    seed: Annotated[int, typer.Option(help="First seed")] = 0,
+    refine: Annotated[bool, typer.Option(help="Polish with Levenberg-Marquardt")] = True,
+    out: Annotated[Path, typer.Option(help="Sweep results file (.h5)")] = Path("sweep.h5"),
+    mass: MassOpt = None,
+) -> None:
+    """Every method x schedule x alpha x restart; one file; a table ranked by final cost."""
+    from fricjax.api import sweep_recording
+
+    def parse(text: str, kind: type) -> list:
+        try:
+            return [kind(s.strip()) for s in text.split(",") if s.strip()]
+        except ValueError:
+            raise FricjaxError(f"sweep: cannot parse {text!r}") from None
+
+    table, path = sweep_recording(
+        recording,
+        config,
+        methods=parse(methods, str),
+        schedules=parse(schedules, str),
+        alphas=parse(alphas, float),
+        restarts=restarts,
+        chains=chains,
+        seed=seed,
+        refine=refine,
+        out=out,
+        mass=mass,
+        on_run=lambda label: typer.echo(f"run {label}", err=True),
+    )
+    typer.echo(table)
+    typer.echo(f"results: {path}")
+
+
+def main() -> None:
+    """Entry point: run the app, turning user mistakes into one line and exit status 2."""
+    try:
+        app(standalone_mode=False)
+    except FricjaxError as err:
+        typer.echo(f"error: {err}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        sys.exit(130)
+    except Exception as err:  # click usage errors arrive here in non-standalone mode
+        import click
+
+        if isinstance(err, click.exceptions.ClickException):
+            err.show()
+            sys.exit(err.exit_code)
+        if isinstance(err, click.exceptions.Abort):
+            sys.exit(130)
+        raise

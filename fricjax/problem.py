@@ -1,0 +1,129 @@
+"""A :class:`Problem` bundles what the equation-error cost needs, as arrays.
+
+``residual(theta) = m·a − (F_p − F_f)`` over the preprocessed recording (seed eq. 5/11) and
+``cost(theta) = Σ residual²`` are pure, jit- and vmap-able functions of the free-parameter
+vector ``theta`` [d]. They are built once per problem and cached, so every search and
+refinement stage reuses the same compiled function.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from fricjax.config import Config
+from fricjax.data.preprocess import PreprocessSettings, derivatives
+from fricjax.data.recording import Recording, require_mass
+from fricjax.errors import FricjaxError, where
+from fricjax.model.system import MASS, Model, cost, ems
+from fricjax.model.term import Signals
+from fricjax.params import ParamSpec
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Preprocessed signals + model + parameter specification.
+
+    Attributes:
+        model: the force model (terms).
+        spec: parameters, ``mass`` included (fixed from the recording unless free).
+        t, x, v, a, u: float64 arrays [n]: time [s], position [m], velocity [m/s],
+            acceleration [m/s²], drive input [u_unit] (zeros when the rig records none).
+        name: recording name; checksum: recording sha256; source: recording path.
+    """
+
+    model: Model
+    spec: ParamSpec
+    t: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    u: np.ndarray
+    name: str = ""
+    checksum: str = ""
+    source: str = ""
+    preprocess: PreprocessSettings | None = None
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def signals(self) -> Signals:
+        return Signals(
+            jnp.asarray(self.t), jnp.asarray(self.x), jnp.asarray(self.v), jnp.asarray(self.u)
+        )
+
+    def named(self, theta: Float[Array, " d"]) -> dict[str, Any]:
+        return self.spec.unflatten(theta)
+
+    @cached_property
+    def residual_fn(self):
+        """``theta [d] -> residual [n]`` in newtons (jitted, cached)."""
+        model, spec, sig, a = self.model, self.spec, self.signals, jnp.asarray(self.a)
+
+        def residual(theta: Float[Array, " d"]) -> Float[Array, " n"]:
+            return model.residual(spec.unflatten(theta), sig, a)
+
+        return jax.jit(residual)
+
+    @cached_property
+    def cost_fn(self):
+        """``theta [d] -> Σ r²`` [N²] (seed eq. 11), jitted and cached."""
+        residual = self.residual_fn
+        return jax.jit(lambda theta: cost(residual(theta)))
+
+    def cost(self, theta: Float[Array, " d"]) -> float:
+        return float(self.cost_fn(jnp.asarray(theta, dtype=jnp.float64)))
+
+    def ems(self, theta: Float[Array, " d"]) -> float:
+        """Error mean square ``cost/n`` [N²] (seed Table 4)."""
+        return float(ems(self.residual_fn(jnp.asarray(theta, dtype=jnp.float64))))
+
+    def theta(self, named: dict[str, float]) -> np.ndarray:
+        """Named values (e.g. a twin's truth) -> free vector; absent names take init."""
+        known = {k: v for k, v in named.items() if k in self.spec}
+        return self.spec.flatten(known)
+
+
+def needs_input(model: Model) -> bool:
+    return any(term.name == "measured_input" for term in model.terms)
+
+
+def build_problem(
+    rec: Recording, config: Config, *, preprocess: PreprocessSettings | None = None
+) -> Problem:
+    """Preprocess ``rec`` (seed section 4.1) and bind it to the config's model."""
+    settings = preprocess or PreprocessSettings.from_dict(
+        config.table("preprocess"), source=config.source or "config"
+    )
+    spec: ParamSpec = config.spec
+    if not config.mass_in_spec:
+        m = require_mass(rec)
+        spec = spec.extended([MASS.fixed_at(m)])
+    if needs_input(config.model) and rec.u is None:
+        raise FricjaxError(
+            f"{where(rec.path or rec.name, '/u')}: missing (model term measured_input needs "
+            "the recorded drive input)"
+        )
+    d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F)
+    u = d.u if d.u is not None else np.zeros_like(d.t)
+    return Problem(
+        model=config.model,
+        spec=spec,
+        t=d.t,
+        x=d.x,
+        v=d.v,
+        a=d.a,
+        u=u,
+        name=rec.name,
+        checksum=rec.sha256(),
+        source=rec.path,
+        preprocess=settings,
+    )
