@@ -1,0 +1,99 @@
+"""The CLI: thin commands over the API, one-line errors and exit status 2 on user mistakes."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from fricjax.data.recording import read_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def fricjax(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "fricjax.cli", *args], cwd=cwd, capture_output=True, text=True,
+        timeout=300,
+    )
+
+
+def test_help_lists_the_commands() -> None:
+    out = fricjax("--help")
+    assert out.returncode == 0
+    for command in ("twin", "inspect", "import-mat", "cost", "identify", "show", "sweep"):
+        assert command in out.stdout
+
+
+def test_twin_regenerates_the_bundled_file_bit_for_bit(tmp_path: Path) -> None:
+    out = fricjax("twin", str(tmp_path / "t.h5"))
+    assert out.returncode == 0, out.stderr
+    assert read_recording(tmp_path / "t.h5").sha256() == read_recording(
+        ROOT / "data" / "paper_twin.h5").sha256()
+
+
+def test_cost_at_truth_is_near_the_noise_level() -> None:
+    out = fricjax("cost", "data/paper_twin.h5", "--config", "configs/paper.toml")
+    assert out.returncode == 0, out.stderr
+    line = next(s for s in out.stdout.splitlines() if s.startswith("EMS"))
+    ems = float(line.split()[-1])
+    # 24 µm of white noise on x through the seed's preprocessing: ~5e3 N² on the interior
+    assert 3e3 < ems < 8e3
+
+
+def test_inspect_writes_a_figure(tmp_path: Path) -> None:
+    png = tmp_path / "twin.png"
+    out = fricjax("inspect", "data/paper_twin.h5", "--png", str(png))
+    assert out.returncode == 0, out.stderr
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "velocity reversals" in out.stdout and "272" in out.stdout
+
+
+def test_identify_then_show(tmp_path: Path) -> None:
+    res = tmp_path / "r.h5"
+    out = fricjax("identify", "data/paper_twin.h5", "--config", "configs/paper.toml",
+                  "--method", "rdsa", "--chains", "4", "--max-levels", "15", "--quiet",
+                  "--out", str(res))
+    assert out.returncode == 0, out.stderr
+    assert "EMS" in out.stdout
+    with h5py.File(res) as f:
+        run = f["runs/rdsa"]
+        assert run["params/value"].shape == (26,)
+        assert run["traces/best_cost"].shape[1] == 4
+        assert f.attrs["recording_sha256"] == read_recording(ROOT / "data/paper_twin.h5").sha256()
+        cost = run.attrs["cost"]
+    assert np.isfinite(cost)
+    shown = fricjax("show", str(res))
+    assert shown.returncode == 0, shown.stderr
+    for table in ("Table 1", "Table 2", "Table 3", "Table 4"):
+        assert table in shown.stdout
+    assert "truth" in shown.stdout and "err" in shown.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["cost", "data/missing.h5", "--config", "configs/paper.toml"], "missing.h5"),
+        (["cost", "data/paper_twin.h5", "--config", "configs/nope.toml"], "nope.toml"),
+        (["identify", "data/paper_twin.h5", "--method", "tabu"], "unknown method 'tabu'"),
+        (["show", "data/paper_twin.h5"], "not a fricjax results file"),
+    ],
+)
+def test_user_mistakes_give_one_line_and_exit_2(args: list[str], needle: str) -> None:
+    out = fricjax(*args)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0]
+
+
+def test_nan_in_a_csv_is_named(tmp_path: Path) -> None:
+    csv = tmp_path / "bad.csv"
+    csv.write_text("t,x\n" + "\n".join(f"{k / 1000},{'nan' if k == 7 else k}" for k in range(40)))
+    out = fricjax("cost", str(csv), "--config", "configs/paper.toml", "--mass", "45",
+                  "--params", str(ROOT / "configs" / "paper.toml"))
+    assert out.returncode == 2
+    assert "bad.csv" in out.stderr and "NaN" in out.stderr
