@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
-import jax
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -21,9 +21,39 @@ from fricjax.config import Config
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, require_mass
 from fricjax.errors import FricjaxError, where
-from fricjax.model.system import MASS, Model, cost, ems
+from fricjax.model.system import MASS, Model, cost
 from fricjax.model.term import Signals
 from fricjax.params import ParamSpec
+
+
+class EquationError(eqx.Module):
+    """Equation-error residual ``m·a − (F_p − F_f)`` [N] over a recording (seed eq. 5/11)."""
+
+    model: Model = eqx.field(static=True)
+    spec: ParamSpec = eqx.field(static=True)
+    t: Float[Array, " n"]
+    x: Float[Array, " n"]
+    v: Float[Array, " n"]
+    u: Float[Array, " n"]
+    a: Float[Array, " n"]
+
+    def __call__(self, theta: Float[Array, " d"]) -> Float[Array, " n"]:
+        sig = Signals(self.t, self.x, self.v, self.u)
+        return self.model.residual(self.spec.unflatten(theta), sig, self.a)
+
+
+class Cost(eqx.Module):
+    """Seed eq. (11): ``Σ r²`` [N²] of an :class:`EquationError`."""
+
+    residual: EquationError
+
+    def __call__(self, theta: Float[Array, " d"]) -> Float[Array, ""]:
+        return cost(self.residual(theta))
+
+
+@eqx.filter_jit
+def _call(fn: eqx.Module, theta: Float[Array, " d"]) -> Array:
+    return fn(theta)
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,27 +94,33 @@ class Problem:
         return self.spec.unflatten(theta)
 
     @cached_property
-    def residual_fn(self):
-        """``theta [d] -> residual [n]`` in newtons (jitted, cached)."""
-        model, spec, sig, a = self.model, self.spec, self.signals, jnp.asarray(self.a)
+    def residual_fn(self) -> EquationError:
+        """``theta [d] -> residual [n]`` in newtons.
 
-        def residual(theta: Float[Array, " d"]) -> Float[Array, " n"]:
-            return model.residual(spec.unflatten(theta), sig, a)
-
-        return jax.jit(residual)
+        An equinox Module holding the data as array leaves: jitted callers (search, refiner)
+        reuse one compilation for every problem with the same model, spec and length.
+        """
+        return EquationError(
+            self.model,
+            self.spec,
+            *(jnp.asarray(a) for a in (self.t, self.x, self.v, self.u, self.a)),
+        )
 
     @cached_property
-    def cost_fn(self):
-        """``theta [d] -> Σ r²`` [N²] (seed eq. 11), jitted and cached."""
-        residual = self.residual_fn
-        return jax.jit(lambda theta: cost(residual(theta)))
+    def cost_fn(self) -> Cost:
+        """``theta [d] -> Σ r²`` [N²] (seed eq. 11)."""
+        return Cost(self.residual_fn)
 
     def cost(self, theta: Float[Array, " d"]) -> float:
-        return float(self.cost_fn(jnp.asarray(theta, dtype=jnp.float64)))
+        return float(_call(self.cost_fn, jnp.asarray(theta, dtype=jnp.float64)))
+
+    def residual(self, theta: Float[Array, " d"]) -> np.ndarray:
+        """Residual [n] in newtons, as numpy (jitted evaluation)."""
+        return np.asarray(_call(self.residual_fn, jnp.asarray(theta, dtype=jnp.float64)))
 
     def ems(self, theta: Float[Array, " d"]) -> float:
         """Error mean square ``cost/n`` [N²] (seed Table 4)."""
-        return float(ems(self.residual_fn(jnp.asarray(theta, dtype=jnp.float64))))
+        return float(np.mean(self.residual(theta) ** 2))
 
     def theta(self, named: dict[str, float]) -> np.ndarray:
         """Named values (e.g. a twin's truth) -> free vector; absent names take init."""
