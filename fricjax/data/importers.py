@@ -36,7 +36,7 @@ EMPS_MAP: Mapping[str, str] = {"t": "t", "x": "qm", "u": "vir"}
 #: resampled; beyond it the samples are not on a clock and the import is refused.
 MAX_GRID_DEVIATION = 1e-2
 
-_FIELDS = ("t", "x", "u", "F")
+_FIELDS = ("t", "x", "u", "F", "r")
 
 
 def import_mat(
@@ -52,8 +52,9 @@ def import_mat(
 
     Args:
         path: ``.mat`` file (v4 to v7.2).
-        mapping: field → MAT variable; ``t`` and ``x`` required, ``u`` and ``F``
-            optional. Variables may be vectors or (n, 1) / (1, n) columns.
+        mapping: field → MAT variable; ``t`` and ``x`` required, ``u``, ``F`` and ``r``
+            (reference position of a closed-loop rig, e.g. EMPS ``qg``) optional.
+            Variables may be vectors or (n, 1) / (1, n) columns.
         mass: moving mass, kg (MAT files carry none).
         u_unit: unit of the drive input u (e.g. "V" for EMPS ``vir``).
         name: recording name; the file stem if None.
@@ -74,7 +75,7 @@ def import_mat(
     for key in mapping:
         if key not in _FIELDS:
             raise FricjaxError(
-                f"{where(path, f'mapping {key!r}')}: unknown field (allowed: t, x, u, F)"
+                f"{where(path, f'mapping {key!r}')}: unknown field (allowed: t, x, u, F, r)"
             )
     for key in ("t", "x"):
         if key not in mapping:
@@ -135,7 +136,7 @@ def import_mat(
             f"dt = {step:.9g} s (limit {MAX_GRID_DEVIATION:g}); resample the signals "
             "onto a uniform clock before import, or give the right dt"
         )
-    moved = {k: _interp(grid, t, getattr(rec, k)) for k in ("x", "u", "F") if k in signals}
+    moved = {k: _interp(grid, t, getattr(rec, k)) for k in ("x", "u", "F", "r") if k in signals}
     notes = (
         f"imported from {path.name} ({mapped}); time base rebuilt as t_k = t_0 + k*dt "
         f"with t_0 = {float(t[0])!r} s, dt = {step!r} s (max |t - grid| = {deviation:.3g} s, "

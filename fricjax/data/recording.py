@@ -14,6 +14,7 @@ path               type              meaning
 ``/x``             float64 [n]       displacement, m
 ``/u``             float64 [n] opt.  measured drive input, unit in attr ``u_unit``
 ``/F``             float64 [n] opt.  measured force on the body, N
+``/r``             float64 [n] opt.  reference position of a closed-loop rig, m
 attr ``mass``      float             moving mass, kg
 attrs ``name``,    str, optional     provenance
 ``source``,
@@ -22,7 +23,10 @@ attrs ``name``,    str, optional     provenance
 ``/truth``         group, optional   generating parameters of synthetic data
 =================  ================  ==========================================
 
-The same recording as CSV: a header ``t,x[,u][,F]`` and one sample a row; the mass then
+``/r`` extends layout v1 (nothing renamed): the set point a position controller tracked
+(EMPS ``qg``), needed to re-simulate a closed-loop run; files without it read as before.
+
+The same recording as CSV: a header ``t,x[,u][,F][,r]`` and one sample a row; the mass then
 comes from the caller.
 
 ``/truth`` is written here (:func:`write_recording`) but never read here: identification
@@ -59,7 +63,7 @@ __all__ = [
 #: that still counts as a uniform time base (conventions: "relative jitter < 1e-6").
 MAX_STEP_JITTER = 1e-6
 
-_SIGNALS = ("t", "x", "u", "F")
+_SIGNALS = ("t", "x", "u", "F", "r")
 _HDF5_SUFFIXES = (".h5", ".hdf5")
 _CSV_SUFFIX = ".csv"
 _TEXT_ATTRS = ("name", "source", "u_unit", "notes")
@@ -67,13 +71,14 @@ _MASS_ATTR = "attr 'mass'"
 
 # SI unit each dataset must carry if it says anything about its unit, and factors that
 # turn common wrong units into it (for the hint in the error message).
-_EXPECTED_UNIT = {"t": "s", "x": "m", "F": "N"}
+_EXPECTED_UNIT = {"t": "s", "x": "m", "F": "N", "r": "m"}
 _UNIT_NAMES = {"s": "seconds", "m": "metres", "N": "newtons"}
 _TO_SI = {
     "t": {"ms": 1e-3, "us": 1e-6, "µs": 1e-6, "ns": 1e-9, "min": 60.0, "h": 3600.0},
     "x": {"mm": 1e-3, "cm": 1e-2, "um": 1e-6, "µm": 1e-6, "nm": 1e-9, "in": 0.0254},
     "F": {"kN": 1e3, "mN": 1e-3, "lbf": 4.4482216152605},
 }
+_TO_SI["r"] = _TO_SI["x"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +99,7 @@ class Recording:
             config makes it a free parameter.
         name, source, u_unit, notes: provenance text.
         path: the file it was read from ("" if built in memory); error messages name it.
+        r: reference (set-point) position of a closed-loop rig, m, shape [n], or None.
     """
 
     t: Float[np.ndarray, " n"]
@@ -106,6 +112,7 @@ class Recording:
     u_unit: str = ""
     notes: str = ""
     path: str = ""
+    r: Float[np.ndarray, " n"] | None = None
 
     def __post_init__(self) -> None:
         for key in _SIGNALS:
@@ -137,7 +144,7 @@ class Recording:
         return float(self.t[-1] - self.t[0])
 
     def sha256(self) -> str:
-        """Hex SHA-256 of the numeric content (t, x, u, F, mass).
+        """Hex SHA-256 of the numeric content (t, x, u, F, mass, and r when present).
 
         Hashes the little-endian float64 bytes of each signal (an absent signal and an
         empty one hash differently) and the exact value of the mass, so the checksum is
@@ -147,6 +154,8 @@ class Recording:
         h = hashlib.sha256(b"fricjax-recording-v1\0")
         for key in _SIGNALS:
             value = getattr(self, key)
+            if value is None and key == "r":
+                continue  # the /r extension leaves checksums of files without it unchanged
             if value is None:
                 h.update(f"{key}:absent;".encode())
             else:
@@ -177,6 +186,7 @@ class Recording:
             x=self.x[sl],
             u=None if self.u is None else self.u[sl],
             F=None if self.F is None else self.F[sl],
+            r=None if self.r is None else self.r[sl],
             notes=f"{self.notes}; {note}" if self.notes else note,
         )
 
@@ -406,13 +416,15 @@ def _read_csv(path: Path) -> Recording:
     lines = text.splitlines()
     header_at = next((i for i, line in enumerate(lines) if line.strip()), None)
     if header_at is None:
-        raise FricjaxError(f"{where(path, 'header')}: empty file, expected a header t,x[,u][,F]")
+        raise FricjaxError(
+            f"{where(path, 'header')}: empty file, expected a header t,x[,u][,F][,r]"
+        )
     columns = [c.strip() for c in lines[header_at].split(",")]
     for c in columns:
         if c not in _SIGNALS:
             raise FricjaxError(
                 f"{where(path, f'column {c!r}')}: unknown column name "
-                "(allowed: t, x, u, F; header must be t,x[,u][,F])"
+                "(allowed: t, x, u, F, r; header must be t,x[,u][,F][,r])"
             )
         if columns.count(c) > 1:
             raise FricjaxError(f"{where(path, f'column {c!r}')}: appears more than once")
@@ -477,7 +489,7 @@ def write_recording(
 
     Args:
         rec: the recording; checked with :func:`validate` (messages name ``path``).
-        path: target file; the suffix picks the format. CSV stores t, x, u, F only
+        path: target file; the suffix picks the format. CSV stores t, x, u, F, r only
             (17 significant digits, exact); mass and provenance are HDF5-only.
         truth: HDF5 only: generating parameters and effects, stored as attrs of group
             ``/truth``. Values: float, int, bool, str, or 1-D float arrays; a nested
@@ -529,7 +541,7 @@ def _write_csv_body(fh: TextIO, rec: Recording) -> None:
 
 
 def _write_hdf5_body(f: h5py.File, rec: Recording, truth: Mapping[str, Any] | None) -> None:
-    units = {"t": "s", "x": "m", "F": "N"}
+    units = {"t": "s", "x": "m", "F": "N", "r": "m"}
     for key in _SIGNALS:
         value = getattr(rec, key)
         if value is None:

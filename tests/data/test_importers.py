@@ -173,3 +173,22 @@ def test_emps_import(emps_mat: Path, tmp_path: Path) -> None:
     assert dict(EMPS_MAP) == {"t": "t", "x": "qm", "u": "vir"}
     back = read_recording(write_recording(rec, tmp_path / "emps.h5"))
     assert back.sha256() == rec.sha256() and back.notes == rec.notes
+
+
+def test_reference_variable_mapped_to_r_and_resampled(tmp_path: Path) -> None:
+    t = float32_clock()
+    qg = 0.2 - 0.03 * t  # affine: linear interpolation onto the grid is exact
+    path = write_mat(tmp_path / "cl.mat", t=t, qm=qg + 1e-6, qg=qg[:, None])
+    rec = import_mat(path, mapping={"t": "t", "x": "qm", "r": "qg"})
+    np.testing.assert_allclose(rec.r, 0.2 - 0.03 * rec.t, rtol=0, atol=1e-15)
+    assert "x, r linearly interpolated" in rec.notes and rec.u is None
+    with pytest.raises(FricjaxError) as err:
+        import_mat(path, mapping={"t": "t", "x": "qm", "q": "qg"})
+    assert_one_line(err, "mapping 'q'", "allowed: t, x, u, F, r")
+
+
+def test_emps_reference_is_qg(emps_mat: Path) -> None:
+    raw = scipy.io.loadmat(emps_mat)
+    rec = import_mat(emps_mat, mapping={**EMPS_MAP, "r": "qg"}, u_unit="V")
+    # qg moves at most 0.13 m/s: the 3.2e-8 s clock shift moves it by < 5e-9 m.
+    assert np.max(np.abs(rec.r - raw["qg"].ravel())) < 5e-9

@@ -457,3 +457,56 @@ def test_require_mass() -> None:
         assert_one_line(err, "<memory>: attr 'mass'", "positive finite")
     assert require_mass(replace(rec, mass=np.float32(2.5))) == 2.5
     assert isinstance(require_mass(replace(rec, mass=3)), float)
+
+
+# ------------------------------------------------- optional reference position /r
+
+
+def with_reference(rec: Recording) -> Recording:
+    return replace(rec, r=rec.x + 1e-4 * np.cos(np.arange(rec.n)))
+
+
+def test_reference_round_trips_hdf5_and_csv_bit_exact(tmp_path: Path) -> None:
+    rec = with_reference(make_rec())
+    for name in ("rec.h5", "rec.csv"):
+        back = read_recording(write_recording(rec, tmp_path / name), mass=rec.mass)
+        assert same_bits(back.r, rec.r), name
+        assert back.sha256() == rec.sha256(), name
+    with h5py.File(tmp_path / "rec.h5", "r") as f:
+        assert f["r"].attrs["unit"] == "m"
+    assert (tmp_path / "rec.csv").read_text().splitlines()[0] == "t,x,u,F,r"
+    part = rec.slice(10, 30)
+    assert same_bits(part.r, rec.r[10:30])
+
+
+def test_reference_absent_leaves_checksum_of_layout_v1_unchanged() -> None:
+    # The v1 checksum of a file without /r, written out independently of the class.
+    import hashlib
+
+    rec = make_rec()
+    h = hashlib.sha256(b"fricjax-recording-v1\0")
+    for key in ("t", "x", "u", "F"):
+        data = np.asarray(getattr(rec, key), dtype="<f8")
+        h.update(f"{key}:{data.shape};".encode())
+        h.update(data.tobytes())
+    h.update(f"mass:{float(rec.mass).hex()};".encode())
+    assert rec.r is None and rec.sha256() == h.hexdigest()
+    assert with_reference(rec).sha256() != rec.sha256()
+
+
+def test_reference_is_validated_like_the_other_signals(tmp_path: Path) -> None:
+    rec = with_reference(make_rec())
+    r = rec.r.copy()
+    r[7] = np.nan
+    with pytest.raises(FricjaxError) as err:
+        validate(replace(rec, r=r, path="rec.h5"))
+    assert_one_line(err, "rec.h5", "/r", "NaN at index 7")
+    with pytest.raises(FricjaxError) as err:
+        validate(replace(rec, r=rec.r[:-1], path="rec.h5"))
+    assert_one_line(err, "/r", "length 199 differs")
+    path = write_recording(rec, tmp_path / "mm.h5")
+    with h5py.File(path, "r+") as f:
+        f["r"].attrs["unit"] = "mm"
+    with pytest.raises(FricjaxError) as err:
+        read_recording(path)
+    assert_one_line(err, "mm.h5", "/r", "wrong units 'mm'", "multiply by 0.001")

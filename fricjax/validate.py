@@ -1,0 +1,439 @@
+"""Validation of an identified model on a recording: equation error and simulation error.
+
+Equation error, in the IDIM sense (Gautier; Janot, Gautier & Brunot 2019 for EMPS). With
+``τ`` the *measured* force on the actuation side and ``τ̂`` the model's prediction of it,
+
+* models with a recorded input (``measured_input``, F_p = g·u − offset):
+  ``τ = g·u`` (e.g. gτ·vir on EMPS) and ``τ̂ = m·a + F_f(v) + offset``;
+* models without one (harmonic drive, seed eq. 4): ``τ = m·a`` (the measured force of seed
+  eq. 11) and ``τ̂ = F_p − F_f``.
+
+Either way ``τ − τ̂ = ±r`` with ``r`` the equation-error residual of seed eq. (11) on the
+preprocessed recording (same ``[preprocess]`` as the identification). Optionally both are
+low-passed and decimated by ``q`` (:mod:`fricjax.data.decimate`), as the IDIM-LS recipe
+does with every column of its observation matrix. Reported over the m kept samples:
+
+    relative error  ‖D r‖ / ‖D τ‖ [-]     error norm ‖D r‖ [N]
+    error std       std(D r) [N]          EMS  mean((D r)²) [N²]   (= identify's EMS at q = 1)
+
+Simulation error: the model is simulated and compared with the record,
+``100·‖y_sim − y‖/‖y‖`` [%] for y = position x, velocity v and acceleration a (v, a of the
+record from the configured preprocessing; the trimmed ends are left out) and, in closed
+loop, the actuation force g·u. A rig with a pure integrator in the plant runs in closed
+loop; simulated open loop from the recorded input it drifts (every force error integrates
+twice), so a recording with a reference ``/r`` and a given controller is re-simulated in
+closed loop (:mod:`fricjax.model.closed_loop`) with the recorded input not explained by the
+feedback law added as an external input (the EMPS pulses); otherwise the model is
+simulated open loop from the recorded input (:func:`fricjax.model.simulate.simulate`).
+
+:func:`fit_simulation_error` identifies by closed-loop *simulation* error instead
+(Levenberg–Marquardt on ``g·(ν_sim(θ) − u)``, the DIDIM idea of Gautier, Janot &
+Vandanjon 2013), for comparison with equation-error identification.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from fricjax.config import Config, load_config, parse_config
+from fricjax.data.decimate import antialias_kernel, check_factor, decimate
+from fricjax.data.recording import Recording, read_recording
+from fricjax.errors import FricjaxError, where
+from fricjax.io.atomic import write_text_atomic
+from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
+from fricjax.model.simulate import simulate
+from fricjax.problem import Problem, build_problem, needs_input
+from fricjax.refine import RefineSettings, refine, uncertainty
+
+__all__ = [
+    "EquationMetrics",
+    "SimulationFit",
+    "SimulationMetrics",
+    "Validation",
+    "equation_error",
+    "fit_simulation_error",
+    "format_validation",
+    "parse_controller",
+    "simulation_error",
+    "validate_model",
+    "validate_recording",
+]
+
+
+class EquationMetrics(NamedTuple):
+    """Equation error in the IDIM sense (module docstring); forces in N.
+
+    rel_error: ‖D r‖/‖D τ‖ [-]; error_norm: ‖D r‖ [N]; error_std: std(D r) [N];
+    ems: mean((D r)²) [N²]; n: samples kept (after trim and decimation); decimate: q;
+    tau: "g·u" or "m·a", what τ is.
+    """
+
+    rel_error: float
+    error_norm: float
+    error_std: float
+    ems: float
+    n: int
+    decimate: int
+    tau: str
+
+
+class SimulationMetrics(NamedTuple):
+    """Relative simulation errors 100·‖y_sim − y‖/‖y‖ [%] over the untrimmed samples.
+
+    mode: "closed-loop" or "open-loop"; force: None in open loop (the input is imposed).
+    """
+
+    mode: str
+    position: float
+    velocity: float
+    acceleration: float
+    force: float | None
+    n: int
+
+
+class Validation(NamedTuple):
+    """Everything :func:`validate_model` measured on one recording."""
+
+    recording: str
+    params: dict[str, float]
+    equation: EquationMetrics
+    simulation: SimulationMetrics | None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "recording": self.recording,
+            "params": self.params,
+            "equation": self.equation._asdict(),
+            "simulation": None if self.simulation is None else self.simulation._asdict(),
+        }
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _named(problem: Problem, params: Mapping[str, float], source: str) -> dict[str, Array]:
+    """Every model parameter as a JAX scalar: values from ``params``, else the config's."""
+    out = {}
+    for p in problem.spec.params:
+        if p.name in params:
+            out[p.name] = jnp.asarray(float(params[p.name]), dtype=jnp.float64)
+        elif p.free:
+            raise FricjaxError(f"{where(source, p.name)}: missing (free parameter of the model)")
+        else:
+            out[p.name] = jnp.asarray(p.init, dtype=jnp.float64)
+    return out
+
+
+def _problem(rec: Recording, cfg: Config, params: Mapping[str, float]) -> Problem:
+    if not cfg.mass_in_spec and rec.mass is None and "mass" in params:
+        rec = replace(rec, mass=float(params["mass"]))
+    return build_problem(rec, cfg)
+
+
+def _rel(sim: np.ndarray, meas: np.ndarray) -> float:
+    return float(100.0 * np.linalg.norm(sim - meas) / np.linalg.norm(meas))
+
+
+# ---------------------------------------------------------------------------- metrics
+
+
+def equation_error(
+    rec: Recording,
+    cfg: Config,
+    params: Mapping[str, float],
+    *,
+    decimate_by: int = 1,
+    source: str = "params",
+) -> EquationMetrics:
+    """IDIM equation-error metrics of ``params`` on ``rec`` (module docstring)."""
+    q = check_factor(decimate_by, "validate")
+    problem = _problem(rec, cfg, params)
+    p = _named(problem, params, source)
+    sig = problem.signals
+    a = jnp.asarray(problem.a)
+    r = problem.model.residual(p, sig, a)
+    if needs_input(problem.model):
+        tau, label = p["gain"] * sig.u, "g·u"
+    else:
+        tau, label = p["mass"] * a, "m·a"
+    if q > 1:
+        k = jnp.asarray(antialias_kernel(q))
+        r, tau = decimate(r, k, q), decimate(tau, k, q)
+    r, tau = np.asarray(r), np.asarray(tau)
+    norm = float(np.linalg.norm(r))
+    return EquationMetrics(
+        rel_error=norm / float(np.linalg.norm(tau)),
+        error_norm=norm,
+        error_std=float(np.std(r)),
+        ems=float(np.mean(r**2)),
+        n=int(r.shape[0]),
+        decimate=q,
+        tau=label,
+    )
+
+
+def simulation_error(
+    rec: Recording,
+    cfg: Config,
+    params: Mapping[str, float],
+    *,
+    controller: CascadePD | None = None,
+    substeps: int = 4,
+    source: str = "params",
+) -> SimulationMetrics:
+    """Simulate ``params`` over ``rec`` and compare (module docstring).
+
+    Closed loop when ``rec`` has a reference ``/r`` and ``controller`` is given; the body
+    starts at the first recorded position with the first-difference velocity.
+    """
+    problem = _problem(rec, cfg, params)
+    p = _named(problem, params, source)
+    t = jnp.asarray(rec.t)
+    x0 = float(rec.x[0])
+    v0 = float((rec.x[1] - rec.x[0]) / rec.dt)
+    u = None if rec.u is None else jnp.asarray(rec.u)
+    closed = controller is not None and rec.r is not None
+    if closed:
+        w = None if rec.u is None else jnp.asarray(input_disturbance(controller, *_trx(rec)))
+        traj = simulate_closed_loop(
+            problem.model, p, t, jnp.asarray(rec.r), x0, v0, controller, w, substeps=substeps
+        )
+        xs, vs, acc, us = (np.asarray(y) for y in traj)
+    else:
+        traj = simulate(problem.model, p, t, x0, v0, u, substeps=substeps)
+        xs, vs, acc = (np.asarray(y) for y in traj)
+        us = None
+    trim = problem.preprocess.trim if problem.preprocess is not None else 0
+    keep = slice(trim, rec.n - trim)
+    force = None
+    if closed and rec.u is not None:
+        gain = float(p["gain"]) if "gain" in p else 1.0
+        force = _rel(gain * us[keep], gain * np.asarray(rec.u)[keep])
+    return SimulationMetrics(
+        mode="closed-loop" if closed else "open-loop",
+        position=_rel(xs[keep], np.asarray(rec.x)[keep]),
+        velocity=_rel(vs[keep], problem.v),
+        acceleration=_rel(acc[keep], problem.a),
+        force=force,
+        n=int(problem.n),
+    )
+
+
+def _trx(rec: Recording) -> tuple[np.ndarray, ...]:
+    return rec.t, rec.x, rec.r, rec.u
+
+
+def validate_model(
+    rec: Recording,
+    cfg: Config,
+    params: Mapping[str, float],
+    *,
+    decimate_by: int = 1,
+    controller: CascadePD | None = None,
+    simulate_run: bool = True,
+    substeps: int = 4,
+    source: str = "params",
+) -> Validation:
+    """Equation-error metrics and (``simulate_run``) simulation-error metrics on ``rec``."""
+    eq = equation_error(rec, cfg, params, decimate_by=decimate_by, source=source)
+    sim = (
+        simulation_error(rec, cfg, params, controller=controller, substeps=substeps, source=source)
+        if simulate_run
+        else None
+    )
+    return Validation(rec.path or rec.name, {k: float(v) for k, v in params.items()}, eq, sim)
+
+
+# ---------------------------------------------------------------------------- CLI level
+
+
+def parse_controller(text: str | None) -> CascadePD | None:
+    """``"emps"`` or ``"kp=160.18,kv=243.45[,u_max=10]"`` → :class:`CascadePD` (None → None)."""
+    if text is None or not text.strip():
+        return None
+    if text.strip().lower() == "emps":
+        from fricjax.model.closed_loop import EMPS_CONTROLLER
+
+        return EMPS_CONTROLLER
+    values: dict[str, float] = {}
+    for pair in text.split(","):
+        key, sep, value = (s.strip() for s in pair.partition("="))
+        if not sep or key not in CascadePD._fields:
+            raise FricjaxError(
+                f"--controller: {pair.strip()!r} is not one of kp=…, kv=…, u_max=… (or 'emps')"
+            )
+        try:
+            values[key] = float(value)
+        except ValueError:
+            raise FricjaxError(f"--controller: {key}: not a number ({value!r})") from None
+    for key in ("kp", "kv"):
+        if key not in values:
+            raise FricjaxError(f"--controller: {key}: missing (give kp=…,kv=…[,u_max=…])")
+    if values.get("u_max", 1.0) <= 0:
+        raise FricjaxError(f"--controller: u_max: must be > 0, got {values['u_max']:g}")
+    return CascadePD(**values)
+
+
+def _config_from_results(path: Path) -> Config:
+    from fricjax.io.results import read_results
+
+    text = str(read_results(path).attrs.get("config", ""))
+    if not text.strip():
+        raise FricjaxError(f"{where(path, 'attr config')}: empty; give --config")
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise FricjaxError(f"{where(path, 'attr config')}: invalid TOML ({err})") from None
+    return parse_config(raw, source=f"{path}: attr config", text=text)
+
+
+def validate_recording(
+    recording: str | Path,
+    results: str | Path,
+    *,
+    config: str | Path | None = None,
+    decimate_by: int = 1,
+    controller: CascadePD | None = None,
+    simulate_run: bool = True,
+    mass: float | None = None,
+    out: str | Path | None = None,
+) -> Validation:
+    """``fricjax validate``: parameters from ``results`` (a results .h5: its best run; or
+    TOML/JSON ``name = value``), config from ``config`` or the one stored in the results
+    file; optional JSON report ``out`` (written atomically)."""
+    from fricjax.api import read_params
+
+    results = Path(results)
+    params = read_params(results)
+    if config is not None:
+        cfg = load_config(config)
+    elif results.suffix.lower() in (".h5", ".hdf5"):
+        cfg = _config_from_results(results)
+    else:
+        raise FricjaxError(f"{where(results)}: holds no config; give --config")
+    rec = read_recording(recording, mass=mass)
+    report = validate_model(
+        rec,
+        cfg,
+        params,
+        decimate_by=decimate_by,
+        controller=controller,
+        simulate_run=simulate_run,
+        source=str(results),
+    )
+    if out is not None:
+        write_text_atomic(out, json.dumps(report.as_dict(), indent=2) + "\n")
+    return report
+
+
+def format_validation(v: Validation) -> str:
+    """Plain-text tables of a :class:`Validation`."""
+    from fricjax.report.tables import format_table
+
+    e = v.equation
+    dec = f", decimated by {e.decimate}" if e.decimate > 1 else ""
+    rows = [
+        (f"relative error ‖τ − τ̂‖/‖τ‖ (τ = {e.tau})", f"{100 * e.rel_error:.3f} %"),
+        ("error norm [N]", f"{e.error_norm:.5g}"),
+        ("error std [N]", f"{e.error_std:.4g}"),
+        ("EMS [N²]", f"{e.ems:.5g}"),
+        ("samples", f"{e.n}{dec}"),
+    ]
+    text = "equation error\n" + format_table(rows, ("metric", "value"))
+    s = v.simulation
+    if s is not None:
+        srows = [
+            ("position", f"{s.position:.4g} %"),
+            ("velocity", f"{s.velocity:.4g} %"),
+            ("acceleration", f"{s.acceleration:.4g} %"),
+        ]
+        if s.force is not None:
+            srows.append(("force", f"{s.force:.4g} %"))
+        text += f"\n\nsimulation error ({s.mode}, 100·‖y_sim − y‖/‖y‖)\n"
+        text += format_table(srows, ("signal", "relative error"))
+    return text
+
+
+# ---------------------------------------------------------------------------- DIDIM
+
+
+class SimulationFit(NamedTuple):
+    """Result of :func:`fit_simulation_error`.
+
+    params: every parameter by name; names, value, std: free parameters, their values and
+    Gauss–Newton σ (white-residual assumption); cost: Σ (g·(ν_sim − u))² [N²] over the
+    untrimmed samples; n_steps: LM iterations; success: LM converged.
+    """
+
+    params: dict[str, float]
+    names: list[str]
+    value: np.ndarray
+    std: np.ndarray
+    cost: float
+    n_steps: int
+    success: bool
+
+
+def fit_simulation_error(
+    rec: Recording,
+    cfg: Config,
+    start: Mapping[str, float],
+    controller: CascadePD,
+    *,
+    substeps: int = 1,
+    settings: RefineSettings | None = None,
+) -> SimulationFit:
+    """Closed-loop output-error identification (DIDIM): minimise over the free θ
+
+        Σ_k (g·ν_sim(k; θ) − g·u(k))²   [N²],   k over the untrimmed samples,
+
+    with ν_sim from :func:`simulate_closed_loop` (reference ``/r``, the external input
+    recovered by :func:`input_disturbance`), by Levenberg–Marquardt from ``start`` inside
+    the config's box. Needs a model with ``measured_input``, and ``/r`` and ``/u``.
+    """
+    src = rec.path or rec.name
+    if rec.r is None:
+        raise FricjaxError(f"{where(src, '/r')}: missing (closed-loop fit needs the reference)")
+    if rec.u is None or not needs_input(cfg.model):
+        raise FricjaxError(f"{where(src, '/u')}: closed-loop fit needs a recorded input model")
+    problem = _problem(rec, cfg, start)
+    spec = problem.spec
+    trim = problem.preprocess.trim if problem.preprocess is not None else 0
+    t, r, u = jnp.asarray(rec.t), jnp.asarray(rec.r), jnp.asarray(rec.u)
+    w = jnp.asarray(input_disturbance(controller, *_trx(rec)))
+    x0 = float(rec.x[0])
+    v0 = float((rec.x[1] - rec.x[0]) / rec.dt)
+    model = problem.model
+
+    def residual(theta: Float[Array, " d"]) -> Float[Array, " m"]:
+        p = spec.unflatten(theta)
+        traj = simulate_closed_loop(model, p, t, r, x0, v0, controller, w, substeps=substeps)
+        err = p["gain"] * (traj.u - u)
+        return err[trim : rec.n - trim]
+
+    theta0 = np.clip(
+        spec.flatten({k: v for k, v in start.items() if k in spec}), spec.lower, spec.upper
+    )
+    fn = jax.jit(residual)
+    out = refine(fn, theta0, spec.lower, spec.upper, settings or RefineSettings(max_steps=50))
+    unc = uncertainty(fn, out.x, spec.lower, spec.upper, names=list(spec.free_names))
+    x = np.asarray(out.x)
+    return SimulationFit(
+        params=spec.as_dict(x),
+        names=list(spec.free_names),
+        value=x,
+        std=np.asarray(unc.std),
+        cost=float(out.cost_after),
+        n_steps=int(out.n_steps),
+        success=bool(out.success),
+    )

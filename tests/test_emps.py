@@ -1,0 +1,141 @@
+"""EMPS real recordings end to end (skipped when ``../shared/data/real/emps/`` is absent):
+import, the published IDIM-LS values and σ, IDIM relative errors on both files, the
+controller law and the closed-loop re-simulation. Published values: the data README."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.io
+
+from fricjax.config import load_config
+from fricjax.data.decimate import antialias_kernel, decimate
+from fricjax.data.importers import import_mat
+from fricjax.identify import IdentifySettings, identify
+from fricjax.model.closed_loop import EMPS_CONTROLLER, feedback_law, input_disturbance
+from fricjax.problem import build_problem
+from fricjax.refine import refine, uncertainty
+from fricjax.validate import equation_error, simulation_error
+
+ROOT = Path(__file__).resolve().parents[1]
+EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"  # never an absolute path
+FILES = {"estimation": "DATA_EMPS.mat", "validation": "DATA_EMPS_PULSES.mat"}
+PUBLISHED = {"mass": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}
+SIGMA = {"mass": 0.1085, "Fv": 1.1460, "Fc": 0.1012, "offset": 0.0444}
+GTAU = 35.15065188
+# fricjax identify fits the 1 kHz equation error; the recipe decimates every column of the
+# observation matrix (the Coulomb column included) by 10 first. That step alone moves Fv
+# and Fc by 1.0 and 1.1 published σ (benchmarks/results/emps.md), hence 1.2 σ here for
+# them and 1 σ for M and the offset, which it hardly moves.
+BOUND = {"mass": 1.0, "Fv": 1.2, "Fc": 1.2, "offset": 1.0}
+
+
+@pytest.fixture(scope="module")
+def mats():
+    paths = {k: EMPS_DIR / f for k, f in FILES.items()}
+    missing = [str(p) for p in paths.values() if not p.is_file()]
+    if missing:
+        pytest.skip(f"EMPS data not found: {', '.join(missing)} (expected ../shared next to repo)")
+    return paths
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(ROOT / "configs" / "emps.toml")
+
+
+@pytest.fixture(scope="module")
+def recs(mats):
+    mapping = {"t": "t", "x": "qm", "u": "vir", "r": "qg"}
+    return {k: import_mat(p, mapping=mapping, u_unit="V", name=k) for k, p in mats.items()}
+
+
+@pytest.fixture(scope="module")
+def est(recs, cfg):
+    return build_problem(recs["estimation"], cfg)
+
+
+@pytest.fixture(scope="module")
+def run(est, cfg):
+    return identify(est, IdentifySettings.from_tables(cfg.tables, source=cfg.source))
+
+
+def named(run) -> dict[str, float]:
+    return {n: float(v) for n, v in zip(run.names, run.value, strict=True)}
+
+
+def test_both_files_import_on_the_1_ms_grid(mats, recs):
+    for key, rec in recs.items():
+        raw = scipy.io.loadmat(mats[key])
+        assert rec.n == 24841 and rec.dt == 1e-3
+        np.testing.assert_array_equal(rec.t, np.arange(24841) * 1e-3)
+        assert rec.u_unit == "V" and rec.mass is None
+        # moving samples by the ≤ 3.2e-8 s clock error changes x, r by < 5e-9 m
+        assert np.max(np.abs(rec.x - raw["qm"].ravel())) < 5e-9
+        assert np.max(np.abs(rec.r - raw["qg"].ravel())) < 5e-9
+        assert np.max(np.abs(rec.u - raw["vir"].ravel())) < 1e-3
+
+
+def test_identify_reproduces_the_published_values(run, est):
+    got = named(run)
+    for k in PUBLISHED:
+        assert abs(got[k] - PUBLISHED[k]) <= BOUND[k] * SIGMA[k], (k, got[k])
+    # the model is linear: search + LM must land on the least-squares solution
+    cols = np.column_stack([est.a, est.v, np.sign(est.v), np.ones_like(est.v)])
+    lsq, *_ = np.linalg.lstsq(cols, GTAU * est.u, rcond=None)
+    for k, value in zip(("mass", "Fv", "Fc", "offset"), lsq, strict=True):
+        assert abs(got[k] - value) < 1e-6 * SIGMA[k], k
+    # its σ come from 10x more (and coloured) samples than the published fit's
+    ratio = np.array([run.std[run.names.index(k)] / SIGMA[k] for k in PUBLISHED])
+    assert np.all((ratio > 0.25) & (ratio < 0.45)), ratio
+
+
+def test_decimated_residual_gives_the_published_values_and_sigmas(run, est):
+    kernel = jnp.asarray(antialias_kernel(10))
+    residual = est.residual_fn
+    fn = jax.jit(lambda theta: decimate(residual(theta), kernel, 10))
+    out = refine(fn, run.value, est.spec.lower, est.spec.upper)
+    unc = uncertainty(fn, out.x, est.spec.lower, est.spec.upper)
+    for i, k in enumerate(est.spec.free_names):
+        assert abs(float(out.x[i]) - PUBLISHED[k]) < 0.2 * SIGMA[k], k
+        assert float(unc.std[i]) == pytest.approx(SIGMA[k], rel=0.05), k
+
+
+def test_idim_relative_errors_on_both_files(run, recs, cfg):
+    p = {"gain": GTAU, **named(run)}
+    e = equation_error(recs["estimation"], cfg, p, decimate_by=10)
+    v = equation_error(recs["validation"], cfg, p, decimate_by=10)
+    assert abs(100 * e.rel_error - 4.1) <= 0.3  # published 4.08 %
+    assert abs(100 * v.rel_error - 6.0) <= 0.3  # published 5.98 % (cross-test)
+    assert e.error_norm == pytest.approx(108.76, rel=0.015)
+    assert v.error_norm == pytest.approx(169.49, rel=0.015)
+    assert e.n == v.n == 2475
+
+
+def test_recorded_vir_is_the_controller_law_plus_the_pulses(mats, recs):
+    rec = recs["estimation"]
+    x2 = np.concatenate([[rec.x[0], rec.x[0]], rec.x[:-2]])
+    nu = np.asarray(feedback_law(EMPS_CONTROLLER, rec.r, rec.x, x2, rec.dt))
+    err = (rec.u - nu)[2:]  # no delay: vir(k) from qm(k), qm(k-2), qg(k)
+    assert np.sqrt(np.mean(err**2)) < 5e-3 and np.max(np.abs(err)) < 0.02  # V, of ±4.3 V
+    val = recs["validation"]
+    w = input_disturbance(EMPS_CONTROLLER, val.t, val.x, val.r, val.u)[2:]
+    pulses = scipy.io.loadmat(mats["validation"])["pulses_N"].ravel().astype(float)[2:]
+    gain = float(np.dot(w, pulses) / np.dot(pulses, pulses))
+    assert gain == pytest.approx(1.0139, abs=2e-4)
+    assert np.sqrt(np.mean((w - gain * pulses) ** 2)) < 1e-2
+
+
+def test_closed_loop_resimulation_tracks_and_open_loop_drifts(recs, cfg):
+    p = {"gain": GTAU, **PUBLISHED}
+    closed = simulation_error(recs["estimation"], cfg, p, controller=EMPS_CONTROLLER)
+    assert closed.mode == "closed-loop"
+    # published (Simulink): position 0.0138 %, velocity 0.229 %, force 5.85 %
+    assert closed.position < 0.0138 and closed.velocity < 0.229 and closed.force < 5.85
+    assert closed.force > 3.0  # the symmetric model's misfit, not a numerical floor
+    opened = simulation_error(recs["estimation"], cfg, p)
+    assert opened.mode == "open-loop" and opened.position > 100 * closed.position
