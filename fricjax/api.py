@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,36 @@ from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.problem import Problem, build_problem
+
+
+def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
+    """Keep compiled XLA executables on disk across processes (jax's persistent cache).
+
+    Compilation, not computation, dominates a cold ``fricjax identify`` (the
+    Levenberg-Marquardt polish alone compiles for several seconds); later processes load
+    the executables instead. Directory: ``path``, else ``$FRICJAX_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/fricjax/jax`` (``~/.cache/fricjax/jax``); capped at 512 MiB (least
+    recently used entries evicted). ``FRICJAX_COMPILATION_CACHE=0`` turns it off. The cache
+    key is the compiled program itself (data embedded as constants included) plus the jax,
+    XLA and platform versions, so a stale entry cannot be used; an unwritable directory
+    only disables the cache. Returns the directory, or None when off.
+    """
+    if os.environ.get("FRICJAX_COMPILATION_CACHE", "1") == "0":
+        return None
+    import jax
+
+    default = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fricjax" / "jax"
+    where_to = Path(path or os.environ.get("FRICJAX_CACHE_DIR") or default)
+    try:
+        where_to.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(where_to))
+    # every program of a run is worth keeping: the small ones add up too
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    jax.config.update("jax_compilation_cache_max_size", 512 * 2**20)
+    return where_to
 
 
 def load(
@@ -268,3 +299,34 @@ def sweep_recording(
         rows, ("run", "cost [N²]", "EMS [N²]", "before refine", "levels", "time [s]")
     )
     return table, path
+
+
+def diagnose_recording(
+    recording: str | Path,
+    config: str | Path,
+    *,
+    out: str | Path,
+    validation: str | Path | None = None,
+    mass: float | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> tuple[Any, dict[str, Path]]:
+    """``fricjax diagnose``: base fit, locate, name, model, prove; write DIR/diagnosis.json.
+
+    Never reads ``/truth``: the recording is read through :func:`read_recording`, which
+    ignores that group.
+    """
+    import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
+    from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
+    from fricjax.identify import IdentifySettings
+
+    rec, cfg, problem = load(recording, config, mass=mass)
+    ident = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
+    table = dict(cfg.table("diagnose"))
+    table.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    settings = DiagnoseSettings.from_dict(table, source=cfg.source)
+    val = None
+    if validation is not None:
+        _, _, val = load(validation, cfg, mass=mass)
+    diag = diagnose(problem, identify_settings=ident, settings=settings, validation=val,
+                    recording=str(recording))
+    return diag, write_diagnosis(diag, out)

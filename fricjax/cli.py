@@ -150,13 +150,23 @@ def identify(
     steps_per_level: Annotated[int | None, typer.Option(help="Metropolis steps per level")] = None,
     max_levels: Annotated[int | None, typer.Option(help="Hard limit on levels")] = None,
     refine: Annotated[bool, typer.Option(help="Polish with Levenberg-Marquardt")] = True,
+    separable: Annotated[
+        bool | None,
+        typer.Option(
+            "--separable/--no-separable",
+            help="Search the nonlinear parameters only, solve the linear ones exactly "
+            "(variable projection; config [search].separable by default)",
+        ),
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="Results file (.h5)")] = None,
     mass: MassOpt = None,
     quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
 ) -> None:
     """Identify the config's parameters on a recording (annealing chains + refiner)."""
-    from fricjax.api import identify_recording
+    from fricjax.api import enable_compilation_cache, identify_recording
     from fricjax.report.show import run_summary
+
+    enable_compilation_cache()
 
     overrides = {
         "method": method,
@@ -167,6 +177,7 @@ def identify(
         "steps_per_level": steps_per_level,
         "max_levels": max_levels,
         "refine": None if refine else False,
+        "separable": separable,
     }
     result, path = identify_recording(
         recording,
@@ -234,6 +245,76 @@ def sweep(
     )
     typer.echo(table)
     typer.echo(f"results: {path}")
+
+
+@app.command()
+def validate(
+    recording: RecArg,
+    results: Annotated[
+        Path, typer.Option(help="Results .h5 of identify (best run), or TOML/JSON name = value")
+    ],
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="Model config (default: from results)")
+    ] = None,
+    decimate: Annotated[
+        int, typer.Option(help="IDIM decimation of τ and residual (EMPS recipe: 10)")
+    ] = 1,
+    controller: Annotated[
+        str | None,
+        typer.Option(help="Closed-loop re-simulation: 'emps' or kp=…,kv=…[,u_max=…] (needs /r)"),
+    ] = None,
+    simulate: Annotated[bool, typer.Option(help="Also compare a simulation")] = True,
+    mass: MassOpt = None,
+    out: Annotated[Path | None, typer.Option(help="Write the metrics as JSON")] = None,
+) -> None:
+    """Evaluate identified parameters on a recording: IDIM relative error, error norm and
+    std, EMS; simulation error (closed loop with --controller and /r, else open loop)."""
+    from fricjax.validate import format_validation, parse_controller, validate_recording
+
+    report = validate_recording(
+        recording,
+        results,
+        config=config,
+        decimate_by=decimate,
+        controller=parse_controller(controller),
+        simulate_run=simulate,
+        mass=mass,
+        out=out,
+    )
+    typer.echo(format_validation(report))
+    if out is not None:
+        typer.echo(f"metrics: {out}")
+
+
+@app.command()
+def diagnose(
+    recording: RecArg,
+    config: ConfigOpt = Path("configs/paper.toml"),
+    out: Annotated[Path, typer.Option(help="Output folder")] = Path("diagnosis"),
+    validation: Annotated[
+        Path | None, typer.Option(help="Second recording for the held-out check")
+    ] = None,
+    alpha: Annotated[float | None, typer.Option(help="Family-wise significance level")] = None,
+    max_terms: Annotated[int | None, typer.Option(help="Most terms to add")] = None,
+    mass: MassOpt = None,
+) -> None:
+    """Locate the mismatch, name the physics left out, model it, show the fit improve."""
+    from fricjax.api import diagnose_recording
+    from fricjax.report.tables import fmt
+
+    diag, paths = diagnose_recording(
+        recording, config, out=out, validation=validation, mass=mass,
+        overrides={"alpha": alpha, "max_terms": max_terms},
+    )
+    if not diag.findings:
+        typer.echo("no missing physics found (residual consistent with noise)")
+    for f in diag.findings:
+        typer.echo(f"{f['effect']}: p = {f['p_value']:.2g}, dBIC = {fmt(f['delta_bic'], 4)}")
+        typer.echo(f"  {f['explanation']}")
+    before, after = diag.fit["before"], diag.fit["after"]
+    typer.echo(f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; "
+               f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}")
+    typer.echo(f"report: {paths['report']}")
 
 
 def main() -> None:

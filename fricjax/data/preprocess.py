@@ -58,6 +58,8 @@ class PreprocessSettings:
     * ``savgol_window``: Savitzky–Golay window [samples], odd, > ``savgol_polyorder``.
     * ``savgol_polyorder``: Savitzky–Golay polynomial degree, ≥ 2 (``a`` is its 2nd derivative).
     * ``trim``: samples dropped at each end after filtering (edge effects, see below).
+    * ``stencil``: central-difference order of the Butterworth path, 2 (np.gradient, the
+      seed's plain differencing) or 4 (see :func:`difference`).
     * ``source``: where the settings came from (config file name), for error messages only.
 
     Why the defaults (measured for 1 kHz sampling; the paper twin has 10 harmonics of 5 Hz,
@@ -106,6 +108,7 @@ class PreprocessSettings:
     savgol_window: int = 27
     savgol_polyorder: int = 7
     trim: int = 0
+    stencil: int = 2
     source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -119,6 +122,8 @@ class PreprocessSettings:
             if not _is_int(value) or value < low:
                 raise FricjaxError(f"{self._key(name)}: must be an integer >= {low}, got {value!r}")
             object.__setattr__(self, name, int(value))
+        if self.stencil not in (2, 4):
+            raise FricjaxError(f"{self._key('stencil')}: must be 2 or 4, got {self.stencil!r}")
         window = self.savgol_window
         if not _is_int(window) or window % 2 != 1:
             raise FricjaxError(
@@ -287,9 +292,24 @@ def _butterworth(
     n = x.shape[0]
     padlen = max(3 * (2 * sos.shape[0] + 1), math.ceil(_PAD_CUTOFF_PERIODS * fs / s.cutoff_hz))
     padlen = min(padlen, n - 1)
-    v = signal.sosfiltfilt(sos, np.gradient(x, dt, edge_order=2), padtype="odd", padlen=padlen)
-    a = signal.sosfiltfilt(sos, np.gradient(v, dt, edge_order=2), padtype="odd", padlen=padlen)
+    v = signal.sosfiltfilt(sos, difference(x, dt, s.stencil), padtype="odd", padlen=padlen)
+    a = signal.sosfiltfilt(sos, difference(v, dt, s.stencil), padtype="odd", padlen=padlen)
     return v, a
+
+
+def difference(y: Float[np.ndarray, " n"], dt: float, stencil: int = 2) -> Float[np.ndarray, " n"]:
+    """Central-difference derivative of order ``stencil`` (2 or 4) [unit of y per s].
+
+    Frequency response ``i·sin(ωh)/h`` (stencil 2) or ``i·(8 sin ωh − sin 2ωh)/(6h)``
+    (stencil 4): relative gain errors at 50 Hz and 1 kHz of −1.6 % and −3.2e-4 per
+    differentiation. The second-order stencil's loss is a systematic bias of ``m·a``
+    against the model force at the upper harmonics, which diagnosis would otherwise read as
+    a mass error; the end samples fall back to np.gradient's second-order one-sided rule.
+    """
+    d = np.gradient(y, dt, edge_order=2)
+    if stencil == 4 and y.shape[0] >= 5:
+        d[2:-2] = (y[:-4] - 8.0 * y[1:-3] + 8.0 * y[3:-1] - y[4:]) / (12.0 * dt)
+    return d
 
 
 def _savgol(

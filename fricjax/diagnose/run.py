@@ -1,0 +1,346 @@
+"""``diagnose``: fit the base model, locate the mismatch, name and model what is missing,
+and prove the gain (before/after fit, held-out check, simulation error).
+
+Output (:func:`write_diagnosis`): ``diagnosis.json`` in the form of shared/conventions.md,
+``report.md`` for a test engineer, residual plots before/after, and ``models.h5`` with the
+base and final fitted models.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import h5py
+import jax.numpy as jnp
+import numpy as np
+
+from fricjax.diagnose.catalogue import candidate
+from fricjax.diagnose.locate import LocateReport, default_whitener, locate
+from fricjax.diagnose.select import Selection, bic, forward_select, gls_fit, whitened_residual
+from fricjax.identify import IdentifySettings, identify
+from fricjax.io.atomic import atomic_path, write_text_atomic
+from fricjax.model.simulate import simulate
+from fricjax.model.system import Model
+from fricjax.params import ParamSpec
+from fricjax.problem import Problem
+
+
+@dataclass
+class DiagnoseSettings:
+    """Knobs of :func:`diagnose` (``[diagnose]`` config table).
+
+    alpha: family-wise significance level (split over the candidates, Bonferroni).
+    min_delta_bic: a term must lower BIC by more than this (10 = "very strong" evidence).
+    max_terms: most terms added. n_mc: Monte Carlo draws calibrating each max-score.
+    heldout: fraction of the record kept out of the fit for the held-out check.
+    """
+
+    alpha: float = 0.01
+    min_delta_bic: float = 10.0
+    max_terms: int = 3
+    n_mc: int = 2000
+    heldout: float = 0.3
+    seed: int = 0
+    n_bins: int = 20
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], source: str = "config") -> DiagnoseSettings:
+        from fricjax.errors import FricjaxError, where
+
+        known = set(cls.__dataclass_fields__)
+        for key in d:
+            if key not in known:
+                raise FricjaxError(
+                    f"{where(source, f'[diagnose].{key}')}: unknown key "
+                    f"(known: {', '.join(sorted(known))})"
+                )
+        out = cls(**d)
+        if not 0 < out.alpha < 1 or not 0 < out.heldout < 0.9:
+            raise FricjaxError(
+                f"{where(source, '[diagnose]')}: alpha and heldout must be in (0, 1)"
+            )
+        return out
+
+
+@dataclass
+class Diagnosis:
+    """Everything diagnose found, as plain data plus the fitted models."""
+
+    recording: str
+    base_model: str
+    findings: list[dict[str, Any]]
+    fit: dict[str, dict[str, float]]
+    heldout: dict[str, float]
+    selection: Selection
+    locate_before: LocateReport
+    locate_after: LocateReport
+    problem: Problem
+    base_spec: ParamSpec
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        return _jsonable(
+            {
+                "recording": self.recording,
+                "base_model": self.base_model,
+                "findings": self.findings,
+                "fit": self.fit,
+                "heldout": self.heldout,
+            }
+        )
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def with_model(problem: Problem, model: Model, spec: ParamSpec) -> Problem:
+    return replace(problem, model=model, spec=spec)
+
+
+def simulation_error(problem: Problem, model: Model, spec: ParamSpec, theta: np.ndarray) -> float:
+    """RMS of x_sim − x [m], simulated from the recording's first preprocessed state.
+
+    NaN for models with stateful terms (LuGre bristles), which the pointwise simulator cannot
+    integrate."""
+    if any(getattr(term, "stateful", False) for term in model.terms):
+        return math.nan
+    p = spec.unflatten(jnp.asarray(theta))
+    try:
+        traj = simulate(
+            model,
+            p,
+            jnp.asarray(problem.t),
+            float(problem.x[0]),
+            float(problem.v[0]),
+            jnp.asarray(problem.u),
+        )
+    except Exception:  # a model the simulator rejects: report no figure rather than fail
+        return math.nan
+    err = np.asarray(traj.x) - problem.x
+    return float(np.sqrt(np.mean(err**2)))
+
+
+def _split(problem: Problem, start: int, stop: int) -> Problem:
+    sl = slice(start, stop)
+    return replace(
+        problem, t=problem.t[sl], x=problem.x[sl], v=problem.v[sl], a=problem.a[sl], u=problem.u[sl]
+    )
+
+
+def heldout_check(
+    problem: Problem,
+    base: tuple[Model, ParamSpec, np.ndarray],
+    final: tuple[Model, ParamSpec, np.ndarray],
+    fraction: float,
+    validation: Problem | None = None,
+) -> dict[str, float]:
+    """Fit on the first (1 − fraction) of the record, evaluate EMS on the rest (or on a
+    second recording): the gain must survive on data the fit has not seen."""
+    if validation is not None:
+        train, test = problem, validation
+        where_ = "second recording"
+    else:
+        k = round(problem.n * (1 - fraction))
+        train, test = _split(problem, 0, k), _split(problem, k, problem.n)
+        where_ = f"last {fraction:.0%} of the record"
+    out: dict[str, float] = {}
+    wh = default_whitener(train, base[2])
+    for label, (model, spec, theta) in (("before", base), ("after", final)):
+        fit_theta, _ = gls_fit(with_model(train, model, spec), model, spec, theta, wh)
+        test_pb = with_model(test, model, spec)
+        out[f"ems_{label}"] = test_pb.ems(fit_theta)
+    out["improvement"] = 1 - out["ems_after"] / out["ems_before"]
+    out["on"] = where_  # type: ignore[assignment]
+    return out
+
+
+def _figures(
+    problem: Problem, model: Model, spec: ParamSpec, theta: np.ndarray, wh: Any
+) -> dict[str, float]:
+    fn = whitened_residual(problem, model, spec, wh)
+    r_w = np.asarray(fn(jnp.asarray(theta)))
+    rss = float(r_w @ r_w)
+    pb = with_model(problem, model, spec)
+    return {"ems": pb.ems(theta), "bic": bic(rss, wh.dof, spec.n_free), "rss_whitened": rss}
+
+
+def diagnose(
+    problem: Problem,
+    *,
+    identify_settings: IdentifySettings | None = None,
+    settings: DiagnoseSettings | None = None,
+    validation: Problem | None = None,
+    recording: str = "",
+) -> Diagnosis:
+    """The whole diagnosis of ``problem``'s base model (see module docstring)."""
+    settings = settings or DiagnoseSettings()
+    run = identify(problem, identify_settings or IdentifySettings())
+    sel = forward_select(
+        problem,
+        run.value,
+        alpha=settings.alpha,
+        min_delta_bic=settings.min_delta_bic,
+        max_terms=settings.max_terms,
+        n_mc=settings.n_mc,
+        seed=settings.seed,
+    )
+    wh = sel.whitener
+    base = (problem.model, problem.spec, sel.base_theta)
+    final = (sel.model, sel.spec, sel.theta)
+    loc_before = locate(
+        problem,
+        sel.base_theta,
+        whitener=wh,
+        n_bins=settings.n_bins,
+        alpha=settings.alpha,
+        n_mc=settings.n_mc,
+        seed=settings.seed,
+    )
+    final_pb = with_model(problem, sel.model, sel.spec)
+    loc_after = locate(
+        final_pb,
+        sel.theta,
+        whitener=wh,
+        n_bins=settings.n_bins,
+        alpha=settings.alpha,
+        n_mc=settings.n_mc,
+        seed=settings.seed + 1,
+    )
+    fit = {
+        "before": {
+            **_figures(problem, *base, wh),
+            "whiteness_p": loc_before.ljung_box_p,
+            "simulation_rms_m": simulation_error(problem, *base),
+        },
+        "after": {
+            **_figures(problem, *final, wh),
+            "whiteness_p": loc_after.ljung_box_p,
+            "simulation_rms_m": simulation_error(problem, *final),
+        },
+    }
+    findings = [_finding(problem, step) for step in sel.steps if step.chosen is not None]
+    leftover = _unexplained(loc_after, settings.alpha)
+    if leftover is not None:
+        findings.append(leftover)
+    heldout: dict[str, float] = {}
+    if findings and any(f["effect"] != "unexplained" for f in findings):
+        heldout = heldout_check(problem, base, final, settings.heldout, validation)
+        for f in findings:
+            f["heldout_improvement"] = heldout["improvement"]
+    return Diagnosis(
+        recording=recording or problem.name,
+        base_model=problem.model.name,
+        findings=findings,
+        fit=fit,
+        heldout=heldout,
+        selection=sel,
+        locate_before=loc_before,
+        locate_after=loc_after,
+        problem=problem,
+        base_spec=problem.spec,
+        extra={"sigma_x_m": sel.sigma, "base_identify_ems": run.ems},
+    )
+
+
+def _finding(problem: Problem, step: Any) -> dict[str, Any]:
+    chosen = step.chosen
+    cand = candidate(chosen.effect)
+    out: dict[str, Any] = {
+        "effect": chosen.effect,
+        "explanation": cand.explain(chosen.params, problem),
+        "location": cand.location(chosen.params, problem),
+        "params": chosen.params,
+        "delta_bic": chosen.delta_bic,
+        "p_value": step.p_value,
+    }
+    if step.overlap > 0.9 and step.runner_up:
+        out["indistinguishable_from"] = step.runner_up
+        out["signature_overlap"] = step.overlap
+        out["explanation"] += (
+            f" On this excitation its signature overlaps that of {step.runner_up} "
+            f"(|cos| = {step.overlap:.2f}): the two cannot be told apart reliably."
+        )
+    return out
+
+
+def _unexplained(loc: LocateReport, alpha: float) -> dict[str, Any] | None:
+    """Structure still significant after the chosen terms: say where, name nothing."""
+    sig = [b for b in loc.significant if b.variable != "frequency"] or list(loc.significant)
+    if not sig:
+        return None
+    worst = max(sig, key=lambda b: b.score)
+    family = loc.family_p.get(worst.variable.rstrip("+-"), loc.family_p.get(worst.variable, alpha))
+    units = {
+        "time": "time_s",
+        "position": "position_m",
+        "velocity+": "velocity_mps",
+        "velocity-": "velocity_mps",
+        "acceleration": "acceleration_mps2",
+        "frequency": "frequency_hz",
+    }
+    where_ = {units.get(worst.variable, worst.variable): [worst.lo, worst.hi]}
+    return {
+        "effect": "unexplained",
+        "explanation": (
+            f"The residual is still significantly structured against {worst.variable} in "
+            f"[{worst.lo:.4g}, {worst.hi:.4g}] (mean residual {worst.mean_residual:.3g} N), "
+            "but no catalogue term explains it better than chance."
+        ),
+        "location": where_,
+        "params": {"mean_residual_N": worst.mean_residual},
+        "delta_bic": worst.score - math.log(max(len(loc.bins), 2)),
+        "p_value": family,
+    }
+
+
+# -- output --------------------------------------------------------------------------------
+
+
+def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
+    """Write diagnosis.json, report.md, residual plots and models.h5 into ``out_dir``."""
+    from fricjax.diagnose.report import markdown_report, residual_plots
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "json": write_text_atomic(
+            out / "diagnosis.json", json.dumps(diag.as_json(), indent=2) + "\n"
+        )
+    }
+    paths.update(residual_plots(diag, out))
+    paths["models"] = _write_models(diag, out / "models.h5")
+    paths["report"] = write_text_atomic(out / "report.md", markdown_report(diag, paths))
+    return paths
+
+
+def _write_models(diag: Diagnosis, path: Path) -> Path:
+    sel = diag.selection
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = "fricjax-diagnosis-models-v1"
+        f.attrs["recording"] = diag.recording
+        for label, (model, spec, theta) in (
+            ("base", (diag.problem.model, diag.base_spec, sel.base_theta)),
+            ("final", (sel.model, sel.spec, sel.theta)),
+        ):
+            g = f.create_group(label)
+            g.attrs["model"] = model.name
+            g.attrs["terms"] = json.dumps([t.name for t in model.terms])
+            named = spec.as_dict(theta)
+            g["names"] = np.array(list(named), dtype=h5py.string_dtype())
+            g["values"] = np.array(list(named.values()), dtype=np.float64)
+            g["free"] = np.array([spec[n].free for n in named], dtype=bool)
+            g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
+    return path

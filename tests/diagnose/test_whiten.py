@@ -1,0 +1,224 @@
+"""The whitener: exact for the linearised residual noise, calibrated by Monte Carlo."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fricjax  # noqa: F401  (float64 on)
+from fricjax.data.preprocess import PreprocessSettings, derivatives, noise_gains
+from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH
+from fricjax.diagnose.whiten import (
+    linear_damping,
+    make_whitener,
+    noise_response,
+    reversal_mask,
+    robust_sigma,
+    stop_band_hz,
+)
+from fricjax.errors import FricjaxError
+from fricjax.model.simulate import simulate
+from fricjax.params import ParamSpec
+from fricjax.problem import Problem
+
+DT = 1e-3
+MASS = 45.0
+SIGMA_X = 2.4e-5  # the paper twin's displacement noise [m]
+PAPER = PreprocessSettings(trim=10)  # configs/paper.toml
+
+
+def bare_problem(n: int, settings: PreprocessSettings) -> Problem:
+    """A problem whose arrays do not matter to the whitener (only t, mass, settings do)."""
+    t = np.arange(n) * DT
+    zero = np.zeros(n)
+    spec = ParamSpec(
+        tuple(p.fixed_at(MASS) if p.name == "mass" else p for p in PAPER_MODEL.parameters())
+    )
+    return Problem(PAPER_MODEL, spec, t, zero, zero, zero, zero, preprocess=settings)
+
+
+def operator(settings: PreprocessSettings, n_full: int, c: float) -> np.ndarray:
+    """K = m·L_a − c·L_v [n, n_full], column by column from derivatives() on impulses."""
+    t = np.arange(n_full) * DT
+    cols = []
+    for j in range(n_full):
+        e = np.zeros(n_full)
+        e[j] = 1.0
+        d = derivatives(t, e, settings)
+        cols.append(MASS * d.a - c * d.v)
+    return np.stack(cols, axis=1)
+
+
+def test_noise_response_is_the_composed_filter() -> None:
+    # a = L·D·(L·D·x) and v = L·D·x: in the interior H_a = H_v² exactly, H_v → i·2πf at
+    # low frequency, and Parseval gives noise_gains' white-noise gains back.
+    n = 4096
+    h_v, h_a = noise_response(PreprocessSettings(), DT, n)
+    f = np.fft.rfftfreq(n, DT)
+    assert np.max(np.abs(h_a - h_v**2)) < 1e-9 * np.max(np.abs(h_a))
+    low = (f > 0) & (f < 5.0)
+    assert np.allclose(h_v[low] / (2j * np.pi * f[low]), 1.0, atol=2e-3)
+    g_v, g_a = noise_gains(PreprocessSettings(), 1.0 / DT)
+    weights = np.where((np.arange(f.size) == 0) | (np.arange(f.size) == n // 2), 1.0, 2.0)
+    assert math.isclose(np.sqrt(np.sum(weights * np.abs(h_v) ** 2) / n), g_v, rel_tol=1e-9)
+    assert math.isclose(np.sqrt(np.sum(weights * np.abs(h_a) ** 2) / n), g_a, rel_tol=1e-9)
+
+
+def test_stop_band_cuts_the_savgol_side_lobes() -> None:
+    # Butterworth default: a keeps < 10 % of its amplitude from 108 Hz on.
+    assert 105.0 < stop_band_hz(PreprocessSettings(), DT) < 111.0
+    sg = PreprocessSettings(method="savgol")
+    f_stop = stop_band_hz(sg, DT)
+    wh = make_whitener(bare_problem(800, sg), damping=1000.0)
+    assert np.all(wh.freqs < f_stop)
+    # The side lobe at 150 Hz passes 36 % of the peak response: above the noise floor, yet
+    # dropped because it lies beyond the first stop-band crossing.
+    _, h_a = noise_response(sg, DT, 800)
+    k150 = round(150 * 800 * DT)
+    assert abs(h_a[k150]) > 0.3 * np.abs(h_a).max()
+    assert k150 not in wh.keep
+
+
+@pytest.mark.parametrize(
+    ("settings", "n", "c"),
+    [
+        (PAPER, 252, 0.0),
+        (PAPER, 252, 3750.0),
+        (PreprocessSettings(), 272, 3750.0),
+    ],
+)
+def test_whitened_noise_covariance_is_exactly_identity(
+    settings: PreprocessSettings, n: int, c: float
+) -> None:
+    wh = make_whitener(bare_problem(n, settings), damping=c)
+    WK = wh(operator(settings, n + 2 * settings.trim, c))
+    assert np.max(np.abs(WK @ WK.T - np.eye(wh.M))) < 1e-9
+    # Without the edge correction the in-band Fourier coefficients alone are far off.
+    Z0 = wh.base(operator(settings, n + 2 * settings.trim, c))
+    assert np.max(np.diag(Z0 @ Z0.T)) > 10.0
+
+
+def test_low_rank_correction_on_a_longer_record() -> None:
+    # Savitzky–Golay, 1 s: the end rows are few (|R| = 96 < M/2), so the correction is a
+    # low-rank update computed without the dense covariance, and it is still exact.
+    settings = PreprocessSettings(method="savgol", trim=10)
+    n = 980
+    wh = make_whitener(bare_problem(n, settings), damping=1000.0)
+    assert 0 < wh.s.size < wh.M / 2
+    K = operator(settings, n + 20, 1000.0)
+    WK = wh(K)
+    assert np.max(np.abs(WK @ WK.T - np.eye(wh.M))) < 1e-9
+    Z0 = wh.base(K)
+    assert np.max(np.diag(Z0 @ Z0.T)) > 10.0
+
+
+def test_monte_carlo_calibration_with_trim() -> None:
+    # Noise-only residuals m·a_e − c·v_e of white x-noise through derivatives() (trim = 10,
+    # configs/paper.toml): whitened entries are i.i.d. N(0, σ_x²).
+    n_full, c, draws = 272, 3750.0, 600
+    wh = make_whitener(bare_problem(n_full - 20, PAPER), damping=c)
+    rng = np.random.default_rng(7)
+    t = np.arange(n_full) * DT
+    R = np.empty((n_full - 20, draws))
+    for j in range(draws):
+        d = derivatives(t, rng.normal(0.0, SIGMA_X, n_full), PAPER)
+        R[:, j] = MASS * d.a - c * d.v
+    Z = wh(R) / SIGMA_X
+    ratio = float(np.mean(Z**2))
+    assert abs(ratio - 1.0) < 4 * math.sqrt(2.0 / Z.size)  # measured 0.997 (M = 54)
+    per_entry = np.mean(Z**2, axis=1)
+    assert np.all(np.abs(per_entry - 1.0) < 5 * math.sqrt(2.0 / draws))
+    corr = np.corrcoef(Z)
+    off = np.abs(corr[~np.eye(wh.M, dtype=bool)])
+    assert off.max() < 5.0 / math.sqrt(draws)
+    # The uncorrected coefficients correlate up to 0.9 between neighbours.
+    base = np.corrcoef(wh.base(R))
+    assert np.abs(base[~np.eye(wh.M, dtype=bool)]).max() > 0.5
+
+
+def test_apply_jax_matches_numpy_inside_jit() -> None:
+    wh = make_whitener(bare_problem(252, PAPER), damping=3000.0, exclude=np.arange(252) % 50 == 0)
+    y = np.random.default_rng(1).normal(size=(252, 3))
+    out = jax.jit(lambda op, arr: op(arr))(wh.module, jnp.asarray(y))
+    assert np.max(np.abs(np.asarray(out) - wh(y))) < 1e-12 * np.abs(wh(y)).max()
+    assert np.allclose(np.asarray(wh.apply_jax(y[:, 0])), wh(y[:, 0]), rtol=0, atol=1e-18)
+
+
+@pytest.fixture(scope="module")
+def coulomb_records() -> tuple[Problem, list[Problem], np.ndarray]:
+    """1 s paper twin (Coulomb + Stribeck): exact trajectory, then white x-noise through
+    derivatives(); a is set so that the residual at the truth is exactly the noise's."""
+    n = 1000
+    t = np.arange(n) * DT
+    p = {k: jnp.asarray(v) for k, v in PAPER_TRUTH.items()}
+    traj = simulate(PAPER_MODEL, p, jnp.asarray(t), 0.0, 0.0, substeps=16)
+    x, v, a = (np.asarray(arr) for arr in traj)
+    spec = bare_problem(4, PAPER).spec.with_values(PAPER_TRUTH)
+    keep = slice(10, n - 10)
+    zero = np.zeros(n - 20)
+
+    def build(vv: np.ndarray, aa: np.ndarray, xx: np.ndarray) -> Problem:
+        return Problem(PAPER_MODEL, spec, t[keep], xx, vv, aa, zero, preprocess=PAPER)
+
+    exact = build(v[keep], a[keep], x[keep])
+    theta = exact.theta(PAPER_TRUTH)
+    a_exact = a[keep] - exact.residual(theta) / MASS  # stuck samples: a from the model
+    clean = derivatives(t, x, PAPER)
+    records = []
+    for seed in range(5):
+        e = np.random.default_rng(100 + seed).normal(0.0, SIGMA_X, n)
+        d = derivatives(t, x + e, PAPER)
+        records.append(build(v[keep] + d.v - clean.v, a_exact + d.a - clean.a, x[keep] + e[keep]))
+    return exact, records, theta
+
+
+def test_velocity_reversals_break_the_linear_model_and_exclusion_restores_it(
+    coulomb_records: tuple[Problem, list[Problem], np.ndarray],
+) -> None:
+    _, records, theta = coulomb_records
+    c = linear_damping(records[0], theta)
+    assert 2400.0 < c < 3750.0  # Fv minus the Stribeck drop's slope
+    wh = make_whitener(records[0], damping=c)
+    low = np.concatenate([wh.freqs < 10.0, (wh.freqs < 10.0)[wh.im_keep]])
+    plain, excluded, dofs = [], [], []
+    for pb in records:
+        r = pb.residual(theta)
+        z = wh(r) / SIGMA_X
+        plain.append(np.mean(z[low] ** 2))
+        mask = reversal_mask(pb, SIGMA_X)
+        w_ex = make_whitener(pb, damping=c, exclude=mask)
+        excluded.append(np.sum((w_ex(r) / SIGMA_X) ** 2))
+        dofs.append(w_ex.dof)
+    # Sign flips of the Coulomb term at reversals: hundreds of σ_x² per low bin.
+    assert np.mean(plain) > 50.0
+    # Samples with |v| < 4σ_v treated as missing: E‖W r‖² = σ_x²·dof again (measured 1.02).
+    assert abs(np.sum(excluded) / np.sum(dofs) - 1.0) < 0.1
+    assert min(dofs) < wh.M  # each excluded sample costs a degree of freedom
+
+
+def test_robust_sigma_recovers_the_noise_level(
+    coulomb_records: tuple[Problem, list[Problem], np.ndarray],
+) -> None:
+    _, records, theta = coulomb_records
+    pb = records[0]
+    wh = make_whitener(pb, damping=linear_damping(pb, theta))
+    r_w = wh(pb.residual(theta))
+    # The plain mean square is dominated by the reversal spikes; the median is not.
+    assert np.sqrt(np.mean(r_w**2)) > 3 * SIGMA_X
+    assert abs(robust_sigma(wh, r_w) / SIGMA_X - 1.0) < 0.25
+
+
+def test_user_errors_name_the_field() -> None:
+    pb = bare_problem(252, PAPER)
+    with pytest.raises(FricjaxError, match="preprocess"):
+        make_whitener(Problem(pb.model, pb.spec, pb.t, pb.x, pb.v, pb.a, pb.u))
+    with pytest.raises(FricjaxError, match=r"exclude: must be a bool mask of shape \(252,\)"):
+        make_whitener(pb, exclude=np.zeros(10, dtype=bool))
+    with pytest.raises(FricjaxError, match="rel_floor"):
+        make_whitener(pb, rel_floor=1.5)
+    with pytest.raises(FricjaxError, match="has 10 samples, the whitener 252"):
+        make_whitener(pb)(np.zeros(10))
