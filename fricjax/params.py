@@ -135,6 +135,17 @@ class ParamSpec:
         named = self.unflatten(jnp.asarray(vals))
         return {k: float(v) for k, v in named.items()}
 
+    def structural(self) -> ParamSpec:
+        """Names, free/fixed and fixed values only (bounds and inits of free parameters
+        dropped): what a residual needs. Jitted code keyed on it is shared by problems whose
+        specs differ only in bounds (e.g. bounds scaled to each recording)."""
+        params = tuple(
+            Param(p.name, "", 0.0, 0.0, 0.0) if p.free
+            else Param(p.name, "", p.init, p.init, p.init, free=False)
+            for p in self.params
+        )
+        return ParamSpec(params)
+
     # -- editing --------------------------------------------------------------------------
     def with_values(self, values: Mapping[str, float]) -> ParamSpec:
         """A copy with the initial/fixed values replaced (bounds unchanged, clipped in)."""

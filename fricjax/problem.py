@@ -18,6 +18,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.config import Config
+from fricjax.data.decimate import antialias_kernel, decimate, decimated_length
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, require_mass
 from fricjax.errors import FricjaxError, where
@@ -37,9 +38,15 @@ class EquationError(eqx.Module):
     u: Float[Array, " n"]
     a: Float[Array, " n"]
 
-    def __call__(self, theta: Float[Array, " d"]) -> Float[Array, " n"]:
+    kernel: Float[Array, " L"] | None = None
+    q: int = eqx.field(static=True, default=1)
+
+    def __call__(self, theta: Float[Array, " d"]) -> Float[Array, " m"]:
         sig = Signals(self.t, self.x, self.v, self.u)
-        return self.model.residual(self.spec.unflatten(theta), sig, self.a)
+        r = self.model.residual(self.spec.unflatten(theta), sig, self.a)
+        # IDIM-LS: anti-alias filter + keep every q-th sample of the residual (= of every
+        # regressor column and the force), fricjax.data.decimate
+        return r if self.q == 1 else decimate(r, self.kernel, self.q)
 
 
 class Cost(eqx.Module):
@@ -102,9 +109,21 @@ class Problem:
         """
         return EquationError(
             self.model,
-            self.spec,
+            self.spec.structural(),
             *(jnp.asarray(a) for a in (self.t, self.x, self.v, self.u, self.a)),
+            kernel=None if self.q == 1 else jnp.asarray(antialias_kernel(self.q)),
+            q=self.q,
         )
+
+    @property
+    def q(self) -> int:
+        """Decimation factor of the residual (``[preprocess].decimate``; 1 = none)."""
+        return self.preprocess.decimate if self.preprocess is not None else 1
+
+    @property
+    def n_residual(self) -> int:
+        """Length of the residual vector (``n``, or ``⌈n/q⌉`` when decimated)."""
+        return decimated_length(self.n, self.q)
 
     @cached_property
     def cost_fn(self) -> Cost:

@@ -84,4 +84,4 @@ def test_cost_is_differentiable(twin_problem: Problem) -> None:
     # directional derivative matches a central difference
     d = jnp.asarray(np.random.default_rng(2).standard_normal(theta.size)) * 1e-5
     fd = (twin_problem.cost(theta + d) - twin_problem.cost(theta - d)) / 2
-    assert abs(float(g @ d) - fd) < 1e-5 * abs(fd)
+    assert abs(float(g @ d) - fd) < 1e-5 * abs(fd) + 1e-5  # + roundoff of a 1e6 N² cost

@@ -60,6 +60,10 @@ class PreprocessSettings:
     * ``trim``: samples dropped at each end after filtering (edge effects, see below).
     * ``stencil``: central-difference order of the Butterworth path, 2 (np.gradient, the
       seed's plain differencing) or 4 (see :func:`difference`).
+    * ``decimate``: the IDIM-LS recipe's last step: the equation-error *residual* (i.e.
+      every regressor column and the force) is anti-alias filtered and kept every
+      ``decimate`` samples (:mod:`fricjax.data.decimate`); 1 = off. Applied by the
+      problem's residual, not to the signals here.
     * ``source``: where the settings came from (config file name), for error messages only.
 
     Why the defaults (measured for 1 kHz sampling; the paper twin has 10 harmonics of 5 Hz,
@@ -109,6 +113,7 @@ class PreprocessSettings:
     savgol_polyorder: int = 7
     trim: int = 0
     stencil: int = 2
+    decimate: int = 1
     source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -117,7 +122,7 @@ class PreprocessSettings:
                 f"{self._key('method')}: must be one of {', '.join(map(repr, _METHODS))}, "
                 f"got {self.method!r}"
             )
-        for name, low in (("order", 1), ("savgol_polyorder", 2), ("trim", 0)):
+        for name, low in (("order", 1), ("savgol_polyorder", 2), ("trim", 0), ("decimate", 1)):
             value = getattr(self, name)
             if not _is_int(value) or value < low:
                 raise FricjaxError(f"{self._key(name)}: must be an integer >= {low}, got {value!r}")

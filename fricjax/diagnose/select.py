@@ -107,7 +107,7 @@ def whitened_residual(
 ) -> WhitenedResidual:
     res = EquationError(
         model,
-        spec,
+        spec.structural(),
         *(jnp.asarray(a) for a in (problem.t, problem.x, problem.v, problem.u, problem.a)),
     )
     return WhitenedResidual(res, wh.module)
@@ -237,7 +237,10 @@ def score_candidate(
         bases.append(q)
         stats[i] = float(np.sum((q.T @ r_perp) ** 2) / sigma2) if q.shape[1] else 0.0
     best = int(np.argmax(stats))
-    null = max_score_null(_pad(bases, k), n_mc, seed, J_w=q_base, dof=dof)
+    # the Monte Carlo noise must live where the whitened noise lives: off the base Jacobian
+    # and off the excluded samples (wh.N), with the same degrees of freedom
+    nuisance = np.hstack([q_base, wh.N]) if wh.N.shape[1] else q_base
+    null = max_score_null(_pad(bases, k), n_mc, seed, J_w=nuisance, dof=dof)
     p_mc = float((1 + np.sum(null >= stats[best])) / (1 + null.size))
     # The Monte Carlo cannot resolve p below 1/(n_mc + 1); the Bonferroni bound over the G
     # grid points (single-point p from the exact Beta law) is valid there and sharper.
