@@ -78,6 +78,9 @@ VARIABLES: tuple[str, ...] = (
 CROSS: tuple[str, ...] = ("v", "x", "a", "|v|", "sgn v")
 # Relative size below which a (whitened) column counts as lying in the nuisance span.
 _RANK_TOL = 1e-9
+# Largest fraction of samples (and at most 0.4 of the whitened length M) that the default
+# whitener excludes near velocity reversals.
+MAX_EXCLUDED = 0.15
 # Fewest samples in a quantile bin.
 _MIN_PER_BIN = 5
 # Monte Carlo draws per block (bounds memory at M × _MC_BLOCK floats per matrix).
@@ -531,7 +534,16 @@ def default_whitener(problem: Problem, theta: Float[np.ndarray, " d"]) -> Whiten
     if not np.any(np.abs(jump) > 0):
         return first
     sigma = robust_sigma(first, first(problem.residual(theta)))
-    return make_whitener(problem, damping=c, exclude=reversal_mask(problem, sigma))
+    mask = reversal_mask(problem, sigma)
+    # A badly fitting base model inflates σ̂ and with it the mask, until almost every sample
+    # is "near a reversal" and nothing is left to test: keep at most MAX_EXCLUDED of the
+    # samples, those of smallest |v| (where a sign flip is likeliest).
+    limit = int(min(MAX_EXCLUDED * problem.n, 0.4 * first.M))
+    if mask.sum() > limit:
+        speed = np.abs(np.asarray(problem.v))
+        mask = np.zeros(problem.n, dtype=bool)
+        mask[np.argsort(speed, kind="stable")[:limit]] = True
+    return make_whitener(problem, damping=c, exclude=mask)
 
 
 @eqx.filter_jit
