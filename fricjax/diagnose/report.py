@@ -145,6 +145,14 @@ def _score_table(diag: Diagnosis) -> str:
     for s in sorted(step.scores, key=lambda s: s.p_value):
         r = refit.get(s.effect)
         rows.append(
-            (s.effect, fmt(s.stat, 4), f"{s.p_value:.2g}", fmt(r.delta_bic, 4) if r else "-")
+            (
+                s.effect,
+                fmt(s.stat, 4),
+                f"{s.p_value:.2g}",
+                fmt(s.delta_bic_linear, 4),
+                fmt(r.delta_bic, 4) if r else "-",
+            )
         )
-    return format_table(rows, ("effect", "max score", "p (calibrated)", "ΔBIC after refit"))
+    return format_table(
+        rows, ("effect", "max score", "p (calibrated)", "ΔBIC (linearised)", "ΔBIC after refit")
+    )

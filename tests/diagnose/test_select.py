@@ -1,0 +1,97 @@
+"""Diagnosis end to end: a null record yields no finding (and /truth is never read), a clearly
+visible effect is named, located and modelled, and the fit improves on held-out data."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import fricjax.diagnose.catalogue as cat
+from fricjax.api import diagnose_recording
+from fricjax.config import Config
+from fricjax.data.recording import write_recording
+from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
+from fricjax.diagnose.run import DiagnoseSettings, diagnose
+from fricjax.identify import IdentifySettings
+from fricjax.problem import build_problem
+
+ROOT = Path(__file__).resolve().parents[2]
+FAST = {"n_mc": 400, "max_terms": 2}
+
+#: one clearly visible instance of each effect on the 1 s paper twin (term, parameters)
+VISIBLE = {
+    "impact": (cat.Impact(), {"impact_A": 3000.0, "impact_t0": 0.4, "impact_w": 0.004}),
+    "extra_harmonic": (cat.ExtraHarmonic(), {"harm_A": 400.0, "harm_B": 0.0, "harm_f": 37.0}),
+    "asymmetric_friction": (cat.AsymmetricFriction(), {"asym_dFc": 60.0, "asym_dFv": 900.0}),
+    "quadratic_drag": (cat.QuadraticDrag(), {"drag_Cd": 6000.0}),
+    "position_bump": (cat.PositionBump(), {"bump_A": 400.0, "bump_x0": 0.06, "bump_w": 0.004}),
+    "friction_drift": (cat.FrictionDrift(t_mid=0.5, duration=1.0), {"drift_beta": 300.0}),
+}
+
+
+def _settings(config: Config) -> IdentifySettings:
+    return IdentifySettings.from_tables(config.tables, source=config.source)
+
+
+def test_null_record_gives_no_finding_and_truth_is_never_read(
+    paper_config: Config, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rec, truth = paper_twin(duration=1.0, seed=11)
+    path = write_recording(rec, tmp_path / "null.h5", truth=truth)
+    opened: list[str] = []
+    original = h5py.Group.__getitem__
+
+    def spy(self: h5py.Group, name: str):  # noqa: ANN202
+        opened.append(str(name))
+        return original(self, name)
+
+    monkeypatch.setattr(h5py.Group, "__getitem__", spy)
+    diag, paths = diagnose_recording(
+        path, ROOT / "configs" / "paper.toml", out=tmp_path / "out", overrides=FAST
+    )
+    monkeypatch.undo()
+    assert not any("truth" in name for name in opened)
+    doc = json.loads(paths["json"].read_text())
+    assert doc["findings"] == []
+    assert set(doc["fit"]["before"]) >= {"ems", "bic", "whiteness_p"}
+    assert doc["fit"]["before"]["whiteness_p"] > 0.001  # the base residual looks white
+    assert (tmp_path / "out" / "report.md").read_text().startswith("# Diagnosis")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", ["impact"])
+def test_visible_effect_is_named_located_and_pays_on_held_out_data(
+    paper_config: Config, effect: str
+) -> None:
+    _check_visible(paper_config, effect)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", sorted(set(VISIBLE) - {"impact"}))
+def test_every_visible_effect_is_named(paper_config: Config, effect: str) -> None:
+    _check_visible(paper_config, effect)
+
+
+def _check_visible(config: Config, effect: str) -> None:
+    term, params = VISIBLE[effect]
+    rec, _ = paper_twin(
+        duration=1.0, seed=3, model=PAPER_MODEL.with_terms([term]), truth={**PAPER_TRUTH, **params}
+    )
+    problem = build_problem(rec, config)
+    diag = diagnose(problem, identify_settings=_settings(config), settings=DiagnoseSettings(**FAST))
+    assert diag.findings, "nothing found"
+    first = diag.findings[0]
+    assert first["effect"] == effect
+    assert first["delta_bic"] > 10 and first["p_value"] < 1e-3
+    assert diag.fit["after"]["bic"] < diag.fit["before"]["bic"]
+    assert diag.heldout["ems_after"] < diag.heldout["ems_before"]
+    if effect == "impact":
+        assert abs(first["params"]["impact_t0"] - 0.4) < 0.01
+        lo, hi = first["location"]["time_s"]
+        assert lo <= 0.4 <= hi
+        assert abs(first["params"]["impact_A"] / 3000.0 - 1) < 0.2
+    assert np.isfinite(diag.fit["after"]["ems"])
