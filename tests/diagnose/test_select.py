@@ -45,12 +45,12 @@ def test_null_record_gives_no_finding_and_truth_is_never_read(
     opened: list[str] = []
     original = h5py.Group.__getitem__
 
-    def spy(self: h5py.Group, name: str):  # noqa: ANN202
+    def spy(self: h5py.Group, name: str):
         opened.append(str(name))
         return original(self, name)
 
     monkeypatch.setattr(h5py.Group, "__getitem__", spy)
-    diag, paths = diagnose_recording(
+    _diag, paths = diagnose_recording(
         path, ROOT / "configs" / "paper.toml", out=tmp_path / "out", overrides=FAST
     )
     monkeypatch.undo()
