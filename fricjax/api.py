@@ -23,8 +23,9 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     Compilation, not computation, dominates a cold ``fricjax identify`` (the
     Levenberg-Marquardt polish alone compiles for several seconds); later processes load
     the executables instead. Directory: ``path``, else ``$FRICJAX_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/fricjax/jax`` (``~/.cache/fricjax/jax``); capped at 512 MiB (least
-    recently used entries evicted). ``FRICJAX_COMPILATION_CACHE=0`` turns it off. The cache
+    ``$XDG_CACHE_HOME/fricjax/jax`` (``~/.cache/fricjax/jax``); a few MB per recording and
+    config (jax evicts nothing; delete the folder to reclaim it).
+    ``FRICJAX_COMPILATION_CACHE=0`` turns it off. The cache
     key is the compiled program itself (data embedded as constants included) plus the jax,
     XLA and platform versions, so a stale entry cannot be used; an unwritable directory
     only disables the cache. Returns the directory, or None when off.
@@ -43,7 +44,6 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     # every program of a run is worth keeping: the small ones add up too
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    jax.config.update("jax_compilation_cache_max_size", 512 * 2**20)
     return where_to
 
 

@@ -317,6 +317,124 @@ def diagnose(
     typer.echo(f"report: {paths['report']}")
 
 
+bench_app = typer.Typer(
+    no_args_is_help=True,
+    help="Benchmarks on the paper twin: Markdown + PNG reports (default benchmarks/results/).",
+)
+app.add_typer(bench_app, name="bench")
+OutDirOpt = Annotated[Path, typer.Option("--out", help="Report folder")]
+
+
+@bench_app.command("convergence")
+def bench_convergence(
+    recording: Annotated[Path, typer.Argument(help="Twin recording")] = Path("data/paper_twin.h5"),
+    config: ConfigOpt = Path("configs/paper.toml"),
+    out: OutDirOpt = Path("benchmarks/results"),
+    methods: Annotated[str, typer.Option(help="Full-space methods, comma-separated")] = (
+        "rdsa,csaa,dsaa,dsaa-gray,csaa-gauss"
+    ),
+    seeds: Annotated[int, typer.Option(help="Seeds per method")] = 10,
+    chains: Annotated[int, typer.Option(help="Chains per run")] = 32,
+    steps_per_level: Annotated[int, typer.Option(help="Steps per level")] = 20,
+    levels: Annotated[int, typer.Option(help="Levels per run (no early stop)")] = 300,
+    separable: Annotated[
+        bool | None,
+        typer.Option("--separable/--no-separable", help="Variable projection (default: if any)"),
+    ] = None,
+    refine: Annotated[bool, typer.Option(help="Also report the LM refiner")] = True,
+) -> None:
+    """RDSA/CSAA/DSAA at one evaluation budget over seeds: traces, success, errors, floor."""
+    from fricjax.bench.convergence import (
+        ConvergenceSettings,
+        convergence_benchmark,
+        convergence_table,
+    )
+
+    settings = ConvergenceSettings(
+        methods=tuple(m.strip() for m in methods.split(",") if m.strip()),
+        seeds=seeds,
+        chains=chains,
+        steps_per_level=steps_per_level,
+        levels=levels,
+        separable=separable,
+        refine=refine,
+    )
+
+    def progress(label: str, run) -> None:
+        typer.echo(
+            f"{label} seed {run.seed}: raw {run.raw_cost:.6g}, refined {run.cost:.6g} N², "
+            f"{run.total_time:.2f} s",
+            err=True,
+        )
+
+    result, paths = convergence_benchmark(
+        recording, config, out_dir=out, settings=settings, on_run=progress
+    )
+    typer.echo(convergence_table(result))
+    typer.echo(f"report: {paths['report']}")
+
+
+@bench_app.command("peers")
+def bench_peers(
+    recording: Annotated[Path, typer.Argument(help="Twin recording")] = Path("data/paper_twin.h5"),
+    config: ConfigOpt = Path("configs/paper.toml"),
+    out: OutDirOpt = Path("benchmarks/results"),
+    seeds: Annotated[int, typer.Option(help="Seeds: fricjax and DE without polish")] = 10,
+    slow_seeds: Annotated[int, typer.Option(help="Seeds: DE + polish, dual annealing, CMA")] = 3,
+    time_cap: Annotated[float, typer.Option(help="Seconds per peer run at most")] = 60.0,
+    separable: Annotated[
+        bool | None,
+        typer.Option("--separable/--no-separable", help="fricjax separable path (default: if any)"),
+    ] = None,
+) -> None:
+    """fricjax against scipy DE / dual annealing and pycma: time and evaluations to target."""
+    from fricjax.bench.peers import PeerSettings, peers_benchmark, peers_table
+
+    settings = PeerSettings(
+        seeds=seeds, slow_seeds=slow_seeds, time_cap=time_cap, separable=separable
+    )
+
+    def progress(name: str, run) -> None:
+        typer.echo(
+            f"{name} seed {run.seed}: {run.cost:.6g} N², {run.evals} evals, "
+            f"{run.seconds:.2f} s ({run.note})",
+            err=True,
+        )
+
+    result, path = peers_benchmark(
+        recording, config, out_dir=out, settings=settings, on_run=progress
+    )
+    typer.echo(peers_table(result))
+    typer.echo(f"report: {path}")
+
+
+@bench_app.command("throughput")
+def bench_throughput(
+    recording: Annotated[Path, typer.Argument(help="Twin recording")] = Path("data/paper_twin.h5"),
+    config: ConfigOpt = Path("configs/paper.toml"),
+    out: OutDirOpt = Path("benchmarks/results"),
+    subprocesses: Annotated[
+        bool, typer.Option(help="Also measure 2 host devices and the YNN flag")
+    ] = True,
+) -> None:
+    """Cost evaluations/s against chain count (f64, f32, numpy), compile, memory, peak."""
+    from fricjax.bench.throughput import (
+        ThroughputSettings,
+        throughput_benchmark,
+        throughput_table,
+    )
+
+    result, path = throughput_benchmark(
+        recording,
+        config,
+        out_dir=out,
+        settings=ThroughputSettings(subprocess=subprocesses),
+        on_line=lambda line: typer.echo(line, err=True),
+    )
+    typer.echo(throughput_table(result))
+    typer.echo(f"report: {path}")
+
+
 def main() -> None:
     """Entry point: run the app, turning user mistakes into one line and exit status 2."""
     try:

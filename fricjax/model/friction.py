@@ -12,7 +12,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from fricjax.model.term import Signals, Term, sgn
+from fricjax.model.term import Basis, Groups, Signals, Term, sgn
 from fricjax.params import Named, Param
 
 
@@ -60,6 +60,21 @@ class StribeckFriction(Term):
         level = stribeck_curve(s.v, p["Fc"], p["Fs"], p["vs"], p["delta"])
         return level * sgn(s.v) + p["Fv"] * s.v
 
+    def linear_groups(self) -> Groups:
+        return (("Fc",), ("Fs",), ("Fv",))
+
+    def basis(self, p: Named, s: Signals) -> Basis:
+        """``F_f = Fc·sgn(v)(1 − e) + Fs·sgn(v)·e + Fv·v``, ``e = exp(−(|v|/vs)^δ)``.
+
+        Columns ``[sgn(v)(1 − e), sgn(v)·e, v]`` [1, 1, m/s], shape [..., 3]; they depend
+        on (vs, δ) only. The coefficients are Fc, Fs, Fv themselves (rather than Fc and
+        Fs − Fc), so the config's box on Fc, Fs, Fv is a box on the coefficients.
+        """
+        v = jnp.asarray(s.v, dtype=jnp.float64)
+        e = stribeck_curve(v, 0.0, 1.0, p["vs"], p["delta"])
+        sg = sgn(v)
+        return Basis(jnp.stack([sg * (1.0 - e), sg * e, v], axis=-1), self.linear_groups())
+
     def static(self, p: Named, s: Signals, direction: Float[Array, "..."]) -> Float[Array, "..."]:
         return p["Fs"] * direction + jnp.zeros_like(s.t)
 
@@ -82,6 +97,14 @@ class CoulombViscous(Term):
 
     def force(self, p: Named, s: Signals) -> Float[Array, "..."]:
         return p["Fc"] * sgn(s.v) + p["Fv"] * s.v
+
+    def linear_groups(self) -> Groups:
+        return (("Fc",), ("Fv",))
+
+    def basis(self, p: Named, s: Signals) -> Basis:
+        """Columns ``[sgn(v), v]`` [1, m/s], shape [..., 2]; coefficients Fc, Fv."""
+        v = jnp.asarray(s.v, dtype=jnp.float64)
+        return Basis(jnp.stack([sgn(v), v], axis=-1), self.linear_groups())
 
     def static(self, p: Named, s: Signals, direction: Float[Array, "..."]) -> Float[Array, "..."]:
         return p["Fc"] * direction + jnp.zeros_like(s.t)

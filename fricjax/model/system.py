@@ -3,6 +3,16 @@
 Residual and cost follow seed eq. (11): ``r_i = F(i) − F*(i)`` with the measured force
 ``F = m·a`` and the model force ``F* = F_p − F_f``; ``cost = Σ r_i²`` [N²];
 ``EMS = cost / n`` [N²], the error mean square of the seed's Table 4.
+
+Separable form (variable projection). When every term declares a linear basis
+(:meth:`fricjax.model.term.Term.basis`), the model force and the residual are linear in
+the coefficients ``c`` for fixed nonlinear parameters ``p_nl`` (ω, vs, δ):
+
+    F*(p) = Φ_F(p_nl) · c_F,     Φ_F = [Φ_drive,1 … | −Φ_friction,1 …]   (friction subtracts)
+    r(p)  = m·a − F*(p) = Ψ(p_nl) · c,    Ψ = [a | −Φ_F],   c = [m, c_F]
+
+so the moving mass is one more linear coefficient (its column is ``a``); when it is fixed,
+``m·a`` is simply a known part of the residual.
 """
 
 from __future__ import annotations
@@ -14,7 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from fricjax.errors import FricjaxError
-from fricjax.model.term import Signals, Term
+from fricjax.model.term import Basis, Groups, Signals, Term, no_basis
 from fricjax.params import Named, Param
 
 MASS = Param("mass", "kg", 1e-6, 1e6, 1.0, free=False)
@@ -82,6 +92,68 @@ class Model:
     def residual(self, p: Named, s: Signals, a: Float[Array, " n"]) -> Float[Array, " n"]:
         """Equation-error residual ``m·a − F*`` [N], shape [n] (seed eq. 11 summand)."""
         return p["mass"] * a - self.force(p, s)
+
+    # -- separable form (see module docstring) --------------------------------------------
+    def require_basis(self) -> None:
+        """Raise the one-line :class:`FricjaxError` naming the first term without a basis."""
+        for term in self.terms:
+            if not term.has_basis:
+                raise no_basis(term)
+
+    def force_groups(self) -> Groups:
+        """Linear names of ``F*`` in column order: the terms' groups, term by term."""
+        self.require_basis()
+        return tuple(g for term in self.terms for g in (term.linear_groups() or ()))
+
+    def linear_groups(self) -> Groups:
+        """Linear names of the residual in column order: ``("mass",)``, then the force's."""
+        return ((MASS.name,), *self.force_groups())
+
+    def basis(self, p: Named, s: Signals) -> Basis:
+        """``Φ_F [..., k_F]`` with ``F*(p) = Φ_F · to_linear(p)[1:]`` [N per coefficient unit]:
+        the drive terms' columns and the friction terms' columns negated."""
+        self.require_basis()
+        cols = []
+        for term in self.terms:
+            b = term.basis(p, s).columns
+            cols.append(b if term.role == "drive" else -b)
+        return Basis(jnp.concatenate(cols, axis=-1), self.force_groups())
+
+    def residual_basis(self, p: Named, s: Signals, a: Float[Array, " n"]) -> Basis:
+        """``Ψ [n, 1 + k_F] = [a | −Φ_F]`` with ``residual(p) = Ψ · to_linear(p)`` [N]."""
+        phi = self.basis(p, s).columns
+        a = jnp.broadcast_to(jnp.asarray(a, dtype=jnp.float64), phi.shape[:-1])
+        return Basis(jnp.concatenate([a[..., None], -phi], axis=-1), self.linear_groups())
+
+    def to_linear(self, p: Named) -> Float[Array, " k"]:
+        """Coefficients ``c = [m, c_F]`` [k] of the residual basis, from named parameters."""
+        self.require_basis()
+        parts = [jnp.reshape(jnp.asarray(p[MASS.name], dtype=jnp.float64), (1,))]
+        parts += [term.to_linear(p) for term in self.terms]
+        return jnp.concatenate(parts)
+
+    def from_linear(self, coef: Float[Array, " k"], p: Named) -> dict[str, Float[Array, ""]]:
+        """Named linear parameters (mass included) from coefficients ``c [k]``."""
+        values = self.linear_values(coef, p)
+        names = [n for g in self.linear_groups() for n in g]
+        return {n: values[i] for i, n in enumerate(names)}
+
+    def linear_values(self, coef: Float[Array, " k"], p: Named) -> Float[Array, " k"]:
+        """Values of the linear parameters (order of :meth:`linear_groups`) from ``c [k]``."""
+        return self._per_term(coef, p, "linear_values")
+
+    def linear_coefficients(self, values: Float[Array, " k"], p: Named) -> Float[Array, " k"]:
+        """Coefficients ``c [k]`` from the linear parameters' values (inverse map)."""
+        return self._per_term(values, p, "linear_coefficients")
+
+    def _per_term(self, vec: Float[Array, " k"], p: Named, method: str) -> Float[Array, " k"]:
+        self.require_basis()
+        parts, i = [vec[:1]], 1  # the mass is its own coefficient
+        for term in self.terms:
+            k = len(term.linear_names)
+            parts.append(getattr(term, method)(vec[i : i + k], p))
+            i += k
+        return jnp.concatenate(parts)
 
 
 def cost(residual: Float[Array, " n"]) -> Float[Array, ""]:

@@ -45,6 +45,7 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
     head = format_table(
         [
             ("method", run.method),
+            ("search", str(a.get("search_space", "full"))),
             (
                 "chains x levels",
                 f"{a.get('n_chains')} x {a.get('levels')} ({a.get('n_evals')} cost evaluations)",
