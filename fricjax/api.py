@@ -319,7 +319,7 @@ def diagnose_recording(
     from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
     from fricjax.identify import IdentifySettings
 
-    rec, cfg, problem = load(recording, config, mass=mass)
+    _, cfg, problem = load(recording, config, mass=mass)
     ident = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
     table = dict(cfg.table("diagnose"))
     table.update({k: v for k, v in (overrides or {}).items() if v is not None})
@@ -327,6 +327,11 @@ def diagnose_recording(
     val = None
     if validation is not None:
         _, _, val = load(validation, cfg, mass=mass)
-    diag = diagnose(problem, identify_settings=ident, settings=settings, validation=val,
-                    recording=str(recording))
+    diag = diagnose(
+        problem,
+        identify_settings=ident,
+        settings=settings,
+        validation=val,
+        recording=str(recording),
+    )
     return diag, write_diagnosis(diag, out)

@@ -303,7 +303,11 @@ def diagnose(
     from fricjax.report.tables import fmt
 
     diag, paths = diagnose_recording(
-        recording, config, out=out, validation=validation, mass=mass,
+        recording,
+        config,
+        out=out,
+        validation=validation,
+        mass=mass,
         overrides={"alpha": alpha, "max_terms": max_terms},
     )
     if not diag.findings:
@@ -312,8 +316,10 @@ def diagnose(
         typer.echo(f"{f['effect']}: p = {f['p_value']:.2g}, dBIC = {fmt(f['delta_bic'], 4)}")
         typer.echo(f"  {f['explanation']}")
     before, after = diag.fit["before"], diag.fit["after"]
-    typer.echo(f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; "
-               f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}")
+    typer.echo(
+        f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; "
+        f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}"
+    )
     typer.echo(f"report: {paths['report']}")
 
 

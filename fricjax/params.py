@@ -140,7 +140,8 @@ class ParamSpec:
         dropped): what a residual needs. Jitted code keyed on it is shared by problems whose
         specs differ only in bounds (e.g. bounds scaled to each recording)."""
         params = tuple(
-            Param(p.name, "", 0.0, 0.0, 0.0) if p.free
+            Param(p.name, "", 0.0, 0.0, 0.0)
+            if p.free
             else Param(p.name, "", p.init, p.init, p.init, free=False)
             for p in self.params
         )

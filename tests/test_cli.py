@@ -17,7 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def fricjax(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "fricjax.cli", *args], cwd=cwd, capture_output=True, text=True,
+        [sys.executable, "-m", "fricjax.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
         timeout=300,
     )
 
@@ -32,8 +35,10 @@ def test_help_lists_the_commands() -> None:
 def test_twin_regenerates_the_bundled_file_bit_for_bit(tmp_path: Path) -> None:
     out = fricjax("twin", str(tmp_path / "t.h5"))
     assert out.returncode == 0, out.stderr
-    assert read_recording(tmp_path / "t.h5").sha256() == read_recording(
-        ROOT / "data" / "paper_twin.h5").sha256()
+    assert (
+        read_recording(tmp_path / "t.h5").sha256()
+        == read_recording(ROOT / "data" / "paper_twin.h5").sha256()
+    )
 
 
 def test_cost_at_truth_is_near_the_noise_level() -> None:
@@ -55,9 +60,21 @@ def test_inspect_writes_a_figure(tmp_path: Path) -> None:
 
 def test_identify_then_show(tmp_path: Path) -> None:
     res = tmp_path / "r.h5"
-    out = fricjax("identify", "data/paper_twin.h5", "--config", "configs/paper.toml",
-                  "--method", "rdsa", "--chains", "4", "--max-levels", "15", "--quiet",
-                  "--out", str(res))
+    out = fricjax(
+        "identify",
+        "data/paper_twin.h5",
+        "--config",
+        "configs/paper.toml",
+        "--method",
+        "rdsa",
+        "--chains",
+        "4",
+        "--max-levels",
+        "15",
+        "--quiet",
+        "--out",
+        str(res),
+    )
     assert out.returncode == 0, out.stderr
     assert "EMS" in out.stdout
     with h5py.File(res) as f:
@@ -93,7 +110,15 @@ def test_user_mistakes_give_one_line_and_exit_2(args: list[str], needle: str) ->
 def test_nan_in_a_csv_is_named(tmp_path: Path) -> None:
     csv = tmp_path / "bad.csv"
     csv.write_text("t,x\n" + "\n".join(f"{k / 1000},{'nan' if k == 7 else k}" for k in range(40)))
-    out = fricjax("cost", str(csv), "--config", "configs/paper.toml", "--mass", "45",
-                  "--params", str(ROOT / "configs" / "paper.toml"))
+    out = fricjax(
+        "cost",
+        str(csv),
+        "--config",
+        "configs/paper.toml",
+        "--mass",
+        "45",
+        "--params",
+        str(ROOT / "configs" / "paper.toml"),
+    )
     assert out.returncode == 2
     assert "bad.csv" in out.stderr and "NaN" in out.stderr

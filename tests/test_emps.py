@@ -28,6 +28,7 @@ GTAU = 35.15065188
 # residual by 10), so identify lands within 0.15 published σ (measured) of the published values.
 BOUND = {"mass": 0.2, "Fv": 0.2, "Fc": 0.2, "offset": 0.2}
 
+
 @pytest.fixture(scope="module")
 def mats():
     paths = {k: EMPS_DIR / f for k, f in FILES.items()}
@@ -88,6 +89,7 @@ def test_identify_reproduces_the_published_values(run, est):
     # and its σ are the published ones (same recipe, same samples)
     for k in PUBLISHED:
         assert run.std[run.names.index(k)] == pytest.approx(SIGMA[k], rel=0.05), k
+
 
 def test_idim_relative_errors_on_both_files(run, recs, cfg):
     p = {"gain": GTAU, **named(run)}

@@ -1097,8 +1097,11 @@ class MassErrorCandidate(Candidate):
         return MassError(problem.model)
 
     def applicable(self, model: Model, spec: ParamSpec) -> bool:
-        return ("mass" in spec and not spec["mass"].free
-                and all(t.name != MassError.name for t in model.terms))
+        return (
+            "mass" in spec
+            and not spec["mass"].free
+            and all(t.name != MassError.name for t in model.terms)
+        )
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
         return MassError().parameters()
