@@ -155,7 +155,7 @@ def identify(
         typer.Option(
             "--separable/--no-separable",
             help="Search the nonlinear parameters only, solve the linear ones exactly "
-            "(variable projection; config [search].separable by default)",
+            "(variable projection; default: separable in the config's search table)",
         ),
     ] = None,
     out: Annotated[Path | None, typer.Option(help="Results file (.h5)")] = None,
