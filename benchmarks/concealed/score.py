@@ -1,0 +1,1066 @@
+"""Score ``fricjax diagnose`` on recordings with one concealed effect each.
+
+Generates the cases it needs (``generate.py``, deterministic by seed; existing files with the
+expected checksum are reused), diagnoses every case in one process with the Python API
+(:func:`fricjax.diagnose.run.diagnose` on ``build_problem(read_recording(path),
+load_config("configs/paper.toml"))``, identify and diagnose settings from that config), so
+same-length cases share their JIT compilations, and only then reads the truth files.
+
+Measured (``benchmarks/results/concealed.md`` + PNGs):
+
+* detection rate (any finding) and top-1 naming accuracy (first finding's effect = the hidden
+  one) per effect and per concealment level c = ‖(I − P_J)·s‖/σ_x;
+* confusion matrix: hidden effect (or none) × first finding (an effect, ``unexplained`` or
+  ``none``), as a table and a heat map;
+* false discoveries on null recordings (any finding);
+* location error |found − true| of the shape parameter of the named effect (impact t0, bump
+  x0, harmonic f, period λ, vst, ε) and the amplitude ratio found/true;
+* fit improvement: EMS before/after, held-out improvement of every named finding;
+* diagnose wall time per case (median; the first case of each length includes compilation).
+
+Usage (reference run, see the report's header for what was run)::
+
+    python benchmarks/concealed/score.py --lengths 1 --levels 5,10 --reps 1 --nulls 6
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+import traceback
+from collections import Counter
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import generate as gen
+import numpy as np
+
+ROOT = gen.ROOT
+DEFAULT_DATA = ROOT / "out" / "concealed"
+DEFAULT_OUT = ROOT / "benchmarks" / "results" / "concealed.md"
+UNEXPLAINED = "unexplained"
+# Targets of the issue ("Missing physics", item 6).
+TARGET_TOP1_HIGH = 0.90  # at c >= 7
+TARGET_TOP1_MID = 0.70  # at c = 5
+TARGET_FDR = 0.05
+TARGET_WALL_1S = 60.0  # s, diagnose on a 1 s recording
+# Shape parameter that locates each effect, and its unit.
+LOCATION_KEY: dict[str, tuple[str, str]] = {
+    "impact": ("impact_t0", "s"),
+    "position_bump": ("bump_x0", "m"),
+    "extra_harmonic": ("harm_f", "Hz"),
+    "position_periodic": ("per_lambda", "m"),
+    "stribeck": ("stribeck_vst", "m/s"),
+    "presliding_hysteresis": ("presl_eps", "m"),
+}
+# Amplitude of each effect: one parameter, or the modulus of a (sin, cos) pair.
+AMPLITUDE_KEYS: dict[str, tuple[str, ...]] = {
+    "stribeck": ("stribeck_A",),
+    "stribeck_shape": ("shape_ddelta",),
+    "asymmetric_friction": ("asym_dFc",),
+    "quadratic_drag": ("drag_Cd",),
+    "presliding_hysteresis": ("presl_A",),
+    "position_bump": ("bump_A",),
+    "position_periodic": ("per_A", "per_B"),
+    "impact": ("impact_A",),
+    "extra_harmonic": ("harm_A", "harm_B"),
+    "friction_drift": ("drift_beta",),
+    "mass_error": ("mass_eps",),
+}
+
+
+# -- running ---------------------------------------------------------------------------------
+def ensure_cases(
+    data: Path, specs: Sequence[gen.CaseSpec], seed: int, measure: str, log: Any
+) -> list[dict[str, Any]]:
+    """Manifest rows of ``specs``, generating the cases missing from ``data``."""
+    config = gen.load_config(gen.CONFIG)
+    rows = []
+    for i, spec in enumerate(specs):
+        cid = spec.case_id(seed, measure)
+        rec_path, truth_path = data / f"{cid}.h5", data / "truth" / f"{cid}.json"
+        if rec_path.is_file() and truth_path.is_file():
+            truth = json.loads(truth_path.read_text())
+            rows.append(
+                {
+                    "case": cid,
+                    "recording": rec_path.name,
+                    "truth": f"truth/{cid}.json",
+                    "duration_s": spec.duration,
+                    "sha256": truth["recording_sha256"],
+                }
+            )
+            continue
+        case = gen.make_case(spec, seed, config, measure=measure)
+        rows.append(gen.write_case(case, data))
+        log(
+            f"generated [{i + 1}/{len(specs)}] {cid} ({case.truth['generate_s']:.1f} s, "
+            f"c = {case.truth['concealment']:.2f})"
+        )
+    manifest = {
+        "format": gen.FORMAT,
+        "seed": seed,
+        "noise_std_m": gen.DEFAULT_NOISE_STD,
+        "rate_hz": gen.RATE,
+        "substeps": gen.SUBSTEPS,
+        "measure": measure,
+        "config": str(gen.CONFIG),
+        "cases": rows,
+    }
+    gen.write_json_atomic(data / "manifest.json", manifest)
+    return rows
+
+
+def run_order(specs: Sequence[gen.CaseSpec]) -> list[gen.CaseSpec]:
+    """The order cases are diagnosed in: by length; within a length, replicate by replicate,
+    the highest level first, effects in catalogue order, nulls spread evenly among them — so
+    an interrupted run has covered every effect at the highest level, and some nulls."""
+    out: list[gen.CaseSpec] = []
+    for duration in sorted({s.duration for s in specs}):
+        group = [s for s in specs if s.duration == duration]
+        eff = sorted(
+            (s for s in group if s.effect != gen.NULL),
+            key=lambda s: (s.rep, -s.level, gen.EFFECTS.index(s.effect)),
+        )
+        nul = sorted((s for s in group if s.effect == gen.NULL), key=lambda s: s.rep)
+        at = [round((i + 0.5) * len(eff) / len(nul)) for i in range(len(nul))]
+        merged: list[gen.CaseSpec] = []
+        for i, s in enumerate(eff):
+            merged += [nul[j] for j, a in enumerate(at) if a == i]
+            merged.append(s)
+        merged += [nul[j] for j, a in enumerate(at) if a >= len(eff)]
+        out += merged
+    return out
+
+
+def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
+    keys = ("effect", "params", "location", "delta_bic", "p_value", "heldout_improvement")
+    return {k: f.get(k) for k in keys if k in f}
+
+
+def diagnose_rows(
+    rows: Sequence[dict[str, Any]], data: str, results: str, skip_existing: bool = True
+) -> list[dict]:
+    """Diagnose each case in this process; one JSON per case in ``results`` (cases with one
+    already are skipped when ``skip_existing``; a case another live process has claimed is
+    left to it). Never reads the truth files."""
+    import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
+    from fricjax.config import load_config
+    from fricjax.data.recording import read_recording
+    from fricjax.diagnose.run import DiagnoseSettings, diagnose
+    from fricjax.identify import IdentifySettings
+    from fricjax.problem import build_problem
+
+    cfg = load_config(gen.CONFIG)
+    ident = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
+    settings = DiagnoseSettings.from_dict(dict(cfg.table("diagnose")), source=cfg.source)
+    out = []
+    for row in rows:
+        result_path = Path(results) / f"{row['case']}.json"
+        if skip_existing and result_path.is_file():  # e.g. another run finished it
+            out.append(json.loads(result_path.read_text()))
+            continue
+        lock = _claim(result_path.with_suffix(".lock"))
+        if lock is None:  # another live process is diagnosing it
+            continue
+        path = Path(data) / row["recording"]
+        t0 = time.perf_counter()
+        try:
+            problem = build_problem(read_recording(path), cfg)
+            diag = diagnose(
+                problem, identify_settings=ident, settings=settings, recording=row["case"]
+            )
+            js = diag.as_json()
+            steps = diag.selection.steps
+            first_scores = (
+                sorted(
+                    (
+                        {"effect": s.effect, "stat": s.stat, "p_value": s.p_value}
+                        for s in steps[0].scores
+                    ),
+                    key=lambda d: d["p_value"],
+                )
+                if steps
+                else []
+            )
+            result = {
+                "case": row["case"],
+                "duration_s": row["duration_s"],
+                "wall_s": time.perf_counter() - t0,
+                "findings": [_finding_row(f) for f in js["findings"]],
+                "fit": js["fit"],
+                "heldout": js["heldout"],
+                "first_step_scores": first_scores,
+                "first_step_refits": [
+                    {"effect": r.effect, "delta_bic": r.delta_bic} for r in steps[0].refits
+                ]
+                if steps
+                else [],
+                "sigma_x_m": diag.extra.get("sigma_x_m"),
+            }
+        except Exception as err:  # one broken case must not lose the others
+            result = {
+                "case": row["case"],
+                "duration_s": row["duration_s"],
+                "wall_s": time.perf_counter() - t0,
+                "error": f"{type(err).__name__}: {err}",
+                "traceback": traceback.format_exc(limit=6),
+            }
+        gen.write_json_atomic(result_path, _plain(result))
+        lock.unlink(missing_ok=True)
+        print(
+            f"diagnosed {row['case']} in {result['wall_s']:.1f} s: "
+            f"{[f['effect'] for f in result.get('findings', [])] or result.get('error', 'none')}",
+            flush=True,
+        )
+        out.append(_plain(result))
+    return out
+
+
+def _claim(lock: Path) -> Path | None:
+    """Create ``lock`` (holding this pid) exclusively; None if a live process holds it. Lets
+    several independent runs on one case folder share the work without doing a case twice."""
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text() or "0")
+                os.kill(pid, 0)  # raises if no such process
+                return None
+            except (ValueError, ProcessLookupError, FileNotFoundError):
+                lock.unlink(missing_ok=True)  # stale: its process is gone
+                continue
+            except PermissionError:
+                return None
+        with os.fdopen(fd, "w") as fh:
+            fh.write(str(os.getpid()))
+        return lock
+    return None
+
+
+def _plain(obj: Any) -> Any:
+    """JSON-safe copy: numpy scalars to Python, non-finite floats to None."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def run_all(
+    rows: Sequence[dict[str, Any]],
+    data: Path,
+    results: Path,
+    jobs: int,
+    resume: bool,
+    reverse: bool = False,
+) -> dict[str, dict]:
+    """Diagnose every row (skipping those already in ``results`` when ``resume``).
+
+    Order: the rows' (:func:`run_order`). ``jobs`` > 1 deals the cases out round robin to
+    worker processes (each compiles once per length)."""
+    results.mkdir(parents=True, exist_ok=True)
+    done: dict[str, dict] = {}
+    todo = []
+    for row in rows:
+        path = results / f"{row['case']}.json"
+        if resume and path.is_file():
+            done[row["case"]] = json.loads(path.read_text())
+        else:
+            todo.append(row)
+    todo.sort(key=lambda r: r["duration_s"])  # stable: keeps run_order within a length
+    if reverse:  # a second run on the same folder works from the other end
+        todo.reverse()
+    if jobs <= 1 or len(todo) <= 1:
+        for res in diagnose_rows(todo, str(data), str(results), resume):
+            done[res["case"]] = res
+        return done
+    # round robin: every worker walks the list in run order, lengths stay together
+    chunks: list[list[dict]] = [todo[i::jobs] for i in range(jobs)]
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        futures = [
+            pool.submit(diagnose_rows, chunk, str(data), str(results), resume)
+            for chunk in chunks
+            if chunk
+        ]
+        for fut in futures:
+            for res in fut.result():
+                done[res["case"]] = res
+    return done
+
+
+# -- scoring ---------------------------------------------------------------------------------
+def first_effect(result: dict[str, Any]) -> str:
+    if "error" in result:
+        return "error"
+    findings = result.get("findings") or []
+    return findings[0]["effect"] if findings else gen.NULL
+
+
+def amplitude(effect: str, params: dict[str, Any]) -> float | None:
+    keys = AMPLITUDE_KEYS.get(effect, ())
+    if not keys or any(k not in params or params[k] is None for k in keys):
+        return None
+    if len(keys) == 1:
+        return float(params[keys[0]])
+    return float(math.hypot(*(float(params[k]) for k in keys)))
+
+
+def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
+    """One case's scores (plain dict)."""
+    effect = truth["effect"]
+    findings = result.get("findings") or []
+    names = [f["effect"] for f in findings]
+    first = first_effect(result)
+    row: dict[str, Any] = {
+        "case": truth["case"],
+        "effect": effect,
+        "level": truth["level"],
+        "c": truth["concealment"],  # of the measure the amplitude was scaled to
+        "c_out": truth.get("concealment_output", truth["concealment"]),
+        "reached": truth.get("reached", True),
+        "raw_rms": truth.get("raw_rms_over_sigma", 0.0),
+        "absorbed": truth.get("absorbed_fraction"),
+        "c_refit": truth.get("concealment_refit", 0.0),
+        # on level: c within [0.75, 1.33]× the target (the secant may stop short when the
+        # signature is not linear in the amplitude or the amplitude bound is hit)
+        "on_level": effect == gen.NULL or 0.75 <= truth["concealment"] / truth["level"] <= 4 / 3,
+        "duration": truth["duration_s"],
+        "first": first,
+        "names": names,
+        "truth_params": ", ".join(f"{k}={v:.3g}" for k, v in sorted(truth["params"].items())),
+        "detected": bool(findings),
+        "top1": first == effect,
+        "named_any": effect in names,
+        "error": result.get("error"),
+        "wall_s": result.get("wall_s"),
+    }
+    fit = result.get("fit") or {}
+    sigma_hat = result.get("sigma_x_m")
+    if fit and sigma_hat and fit["before"].get("rss_whitened"):
+        # excess of the base fit's whitened RSS over pure noise, in σ_x: what the
+        # diagnosis was left with (rss/σ̂² = dof − d, so rss/σ² − rss/σ̂² ≈ ‖excess‖²/σ²)
+        rss = float(fit["before"]["rss_whitened"])
+        sigma = float(truth["noise_std_m"])
+        row["c_fit"] = math.sqrt(max(rss / sigma**2 - rss / float(sigma_hat) ** 2, 0.0))
+        row["sigma_ratio"] = float(sigma_hat) / sigma
+    if fit:
+        row["ems_before"] = fit["before"]["ems"]
+        row["ems_after"] = fit["after"]["ems"]
+        row["sim_before"] = fit["before"].get("simulation_rms_m")
+        row["sim_after"] = fit["after"].get("simulation_rms_m")
+    named = [f for f in findings if f["effect"] != UNEXPLAINED]
+    row["named_findings"] = len(named)
+    row["heldout"] = [f.get("heldout_improvement") for f in named]
+    if effect in names:
+        found = findings[names.index(effect)]
+        params = found.get("params") or {}
+        if effect in LOCATION_KEY:
+            key, unit = LOCATION_KEY[effect]
+            if key in params and params[key] is not None:
+                row["loc_key"], row["loc_unit"] = key, unit
+                row["loc_true"] = float(truth["params"][key])
+                row["loc_found"] = float(params[key])
+                row["loc_err"] = abs(row["loc_found"] - row["loc_true"])
+        a_true, a_found = amplitude(effect, truth["params"]), amplitude(effect, params)
+        if a_true and a_found is not None:
+            row["amp_ratio"] = a_found / a_true
+    if first != gen.NULL and findings:
+        row["first_delta_bic"] = findings[0].get("delta_bic")
+        row["first_p"] = findings[0].get("p_value")
+    return row
+
+
+def equation_error_concealment(truth: dict[str, Any], path: Path) -> float | None:
+    """``c_ee`` of the hidden effect on the recording at ``path``
+    (:class:`generate.EquationErrorView`: what the diagnosis' score test can see, in noise
+    standard deviations). Scoring only: reads the truth."""
+    from fricjax.config import load_config
+    from fricjax.data.recording import read_recording
+    from fricjax.problem import build_problem
+
+    if truth["effect"] == gen.NULL:
+        return 0.0
+    if truth.get("concealment_ee") is not None:
+        return float(truth["concealment_ee"])
+    problem = build_problem(read_recording(path), load_config(gen.CONFIG))
+    view = gen.EquationErrorView(problem, truth["base"], truth["noise_std_m"])
+    return view.concealment(truth["effect"], truth["params"])
+
+
+def _pct(k: int, n: int) -> str:
+    return f"{k}/{n} ({100.0 * k / n:.0f} %)" if n else "–"
+
+
+def _g(v: Any, fmt: str = ".3g") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return format(v, fmt)
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def machine() -> str:
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
+    return f"{model}, {os.cpu_count()} cores, load average {load[0]:.1f} (1 min)"
+
+
+def git_state() -> tuple[str, str]:
+    def run(*args: str) -> str:
+        try:
+            return subprocess.run(
+                ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+            ).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            return "(unavailable)"
+
+    return run("rev-parse", "HEAD"), run("status", "--short", "fricjax", "configs")
+
+
+def report(
+    scored: list[dict[str, Any]],
+    out: Path,
+    header: dict[str, Any],
+    measure: str = "output",
+) -> str:
+    """Markdown report + PNGs next to ``out``; returns the Markdown."""
+    effects = [e for e in gen.EFFECTS if any(r["effect"] == e for r in scored)]
+    levels = sorted({r["level"] for r in scored if r["effect"] != gen.NULL})
+    all_eff = [r for r in scored if r["effect"] != gen.NULL]
+    # level statistics count only cases whose achieved c is near the target (on_level)
+    eff_rows = [r for r in all_eff if r["on_level"]]
+    off = [r for r in all_eff if not r["on_level"]]
+    nulls = [r for r in scored if r["effect"] == gen.NULL]
+    scaled = (
+        "the part of its equation-error signature that the base model cannot absorb, in the "
+        "diagnosis' whitened space, is c_ee noise standard deviations: c_ee = "
+        "‖(I − P_{J_w})·W·δr‖/σ_x (δr the effect's change of m·a − F* at the truth, W the "
+        "diagnosis' whitener, J_w the whitened base Jacobian; c_ee² is the noncentrality of "
+        "the score test at the true shape). The levels below are c_ee levels; the output-error "
+        "c of the same cases is reported beside them"
+        if measure == "equation"
+        else "the part of its displacement signature the base model cannot absorb is c noise "
+        "standard deviations: c = ‖(I − P_J)·s‖/σ_x, s = x_effect − x_base, J = "
+        "∂x_sim/∂θ_base (26 parameters). The levels below are c levels; the equation-error "
+        "c_ee (what the diagnosis' score test sees) of the same cases is reported beside them"
+    )
+    lines = [
+        "# Diagnosis on concealed effects",
+        "",
+        "Each recording hides ONE catalogue effect in the paper-twin plant (parameters varied "
+        "±15 %, phases ±0.2 rad, ω ±5 %; σ_x = 24 µm, 1 kHz), its amplitude scaled so that "
+        + scaled
+        + ". `rms/σ` = rms(x_effect − x_base)/σ_x: below 1, nothing shows by eye in x. "
+        "Generator: `benchmarks/concealed/generate.py`; scorer: `benchmarks/concealed/score.py`. "
+        "Diagnosis never reads the truth (separate `truth/CASE.json` files, opaque case ids).",
+        "",
+        "## What ran",
+        "",
+        _table(["item", "value"], [[k, v] for k, v in header.items()]),
+        "",
+    ]
+
+    # targets ------------------------------------------------------------------------------
+    def top1(rows: list[dict]) -> tuple[int, int]:
+        return sum(r["top1"] for r in rows), len(rows)
+
+    hi = [r for r in eff_rows if r["level"] >= 7]
+    mid = [r for r in eff_rows if r["level"] == 5]
+    fd = sum(r["detected"] for r in nulls)
+    named_all = [h for r in all_eff + nulls for h in r["heldout"]]
+    with_gain = sum(1 for h in named_all if h is not None and h > 0)
+    walls_1s = [r["wall_s"] for r in scored if abs(r["duration"] - 1.0) < 1e-9 and r["wall_s"]]
+    med_1s = float(np.median(walls_1s)) if walls_1s else math.nan
+
+    def verdict(ok: bool | None) -> str:
+        return "–" if ok is None else ("met" if ok else "**not met**")
+
+    k_hi, n_hi = top1(hi)
+    k_mid, n_mid = top1(mid)
+    lines += [
+        "## Targets",
+        "",
+        _table(
+            ["target", "measured", "verdict"],
+            [
+                [
+                    "top-1 naming ≥ 90 % at c ≥ 7",
+                    _pct(k_hi, n_hi),
+                    verdict(k_hi / n_hi >= TARGET_TOP1_HIGH if n_hi else None),
+                ],
+                [
+                    "top-1 naming ≥ 70 % at c = 5",
+                    _pct(k_mid, n_mid),
+                    verdict(k_mid / n_mid >= TARGET_TOP1_MID if n_mid else None),
+                ],
+                [
+                    "false discoveries on nulls ≤ 5 %",
+                    _pct(fd, len(nulls)),
+                    verdict(fd / len(nulls) <= TARGET_FDR if nulls else None),
+                ],
+                [
+                    "every named finding has a held-out improvement (> 0)",
+                    f"{with_gain}/{len(named_all)}",
+                    verdict(with_gain == len(named_all) if named_all else None),
+                ],
+                [
+                    "diagnose on a 1 s recording < 1 min (median)",
+                    f"{_g(med_1s, '.1f')} s",
+                    verdict(med_1s < TARGET_WALL_1S if walls_1s else None),
+                ],
+            ],
+        ),
+        "",
+    ]
+    # per effect × level --------------------------------------------------------------------
+    head = ["effect"] + [f"c = {lv:g}: detected / top-1 / named" for lv in levels]
+    body = []
+    for e in effects:
+        cells = [e]
+        for lv in levels:
+            rs = [r for r in eff_rows if r["effect"] == e and r["level"] == lv]
+            n = len(rs)
+            cells.append(
+                f"{sum(r['detected'] for r in rs)}/{n} · {sum(r['top1'] for r in rs)}/{n} · "
+                f"{sum(r['named_any'] for r in rs)}/{n}"
+                if n
+                else "–"
+            )
+        body.append(cells)
+    lv_cells = ["**all effects**"]
+    for lv in levels:
+        rs = [r for r in eff_rows if r["level"] == lv]
+        n = len(rs)
+        lv_cells.append(
+            f"{_pct(sum(r['detected'] for r in rs), n)} · {_pct(sum(r['top1'] for r in rs), n)}"
+            f" · {_pct(sum(r['named_any'] for r in rs), n)}"
+        )
+    body.append(lv_cells)
+    lines += [
+        "## Detection and naming per effect and concealment",
+        "",
+        "detected: any finding; top-1: the first finding names the hidden effect; named: the "
+        "hidden effect is among the findings. Only cases whose achieved c is within "
+        "[0.75, 1.33]× the target count here and in the targets above.",
+        "",
+        _table(head, body),
+        "",
+    ]
+    if off:
+        lines += [
+            "Cases NOT at their level (the target c could not be reached: the base model "
+            "absorbs the effect, or the amplitude bound was hit; scored in the confusion "
+            "matrix only): "
+            + "; ".join(
+                f"{r['case']} {r['effect']} target {r['level']:g} → c = {r['c']:.3g} "
+                f"(first finding: {r['first']})"
+                for r in off
+            )
+            + ".",
+            "",
+        ]
+    # confusion ----------------------------------------------------------------------------
+    truth_labels = effects + ([gen.NULL] if nulls else [])
+    found_labels = [*gen.EFFECTS, UNEXPLAINED, gen.NULL]
+    if any(r["first"] == "error" for r in scored):
+        found_labels.append("error")
+    counts = Counter((r["effect"], r["first"]) for r in scored)
+    short = {e: e.replace("_", " ") for e in found_labels}
+    lines += [
+        "## Confusion matrix (hidden effect × first finding)",
+        "",
+        _table(
+            ["hidden \\ first"] + [short[f] for f in found_labels],
+            [[t] + [counts.get((t, f), 0) or "·" for f in found_labels] for t in truth_labels],
+        ),
+        "",
+    ]
+    # nulls --------------------------------------------------------------------------------
+    if nulls:
+        lines += [
+            "## Null recordings",
+            "",
+            f"False discoveries: {_pct(fd, len(nulls))}. Findings on nulls: "
+            + (
+                ", ".join(
+                    f"{k} ×{v}" for k, v in Counter(n for r in nulls for n in r["names"]).items()
+                )
+                or "none"
+            )
+            + ".",
+            "",
+        ]
+    # location and amplitude -----------------------------------------------------------------
+    loc_rows = []
+    for e in effects:
+        rs = [r for r in eff_rows if r["effect"] == e and "loc_err" in r]
+        amps = [r["amp_ratio"] for r in eff_rows if r["effect"] == e and "amp_ratio" in r]
+        if not rs and not amps:
+            loc_rows.append([e, "–", "–", "–", "–", "–"])
+            continue
+        if rs:
+            key, unit = rs[0]["loc_key"], rs[0]["loc_unit"]
+            errs = np.array([r["loc_err"] for r in rs])
+            rel = np.array([r["loc_err"] / abs(r["loc_true"]) for r in rs])
+            loc = [
+                f"{key} [{unit}]",
+                str(len(rs)),
+                _g(float(np.median(errs))),
+                _g(float(np.max(errs))),
+                f"{100 * float(np.median(rel)):.2g} %",
+            ]
+        else:
+            loc = ["(no shape parameter)", "–", "–", "–", "–"]
+        ratio = f"{_g(float(np.median(amps)))} ({len(amps)})" if amps else "–"
+        loc_rows.append([e, *loc[:1], loc[1], loc[2], loc[3], f"{loc[4]}; amplitude ratio {ratio}"])
+    lines += [
+        "## Location and amplitude of the named effect",
+        "",
+        "For cases where the hidden effect is among the findings: |found − true| of its shape "
+        "parameter, and the median ratio found/true of its amplitude (number of cases).",
+        "",
+        _table(
+            [
+                "effect",
+                "parameter",
+                "n",
+                "median error",
+                "max error",
+                "median rel. error; amplitude",
+            ],
+            loc_rows,
+        ),
+        "",
+    ]
+    # fit ----------------------------------------------------------------------------------
+    ratio = [r["ems_after"] / r["ems_before"] for r in scored if r.get("ems_before")]
+    eff_rows = all_eff  # from here on: every case
+    held = [h for h in named_all if h is not None]
+    lines += [
+        "## Fit improvement",
+        "",
+        _table(
+            ["figure", "value"],
+            [
+                [
+                    "cases diagnosed without error",
+                    f"{sum(r['error'] is None for r in scored)}/{len(scored)}",
+                ],
+                [
+                    "median EMS after/before (all cases)",
+                    _g(float(np.median(ratio))) if ratio else "–",
+                ],
+                [
+                    "median EMS after/before (cases with a named finding)",
+                    _g(
+                        float(
+                            np.median(
+                                [
+                                    r["ems_after"] / r["ems_before"]
+                                    for r in scored
+                                    if r.get("ems_before") and r["named_findings"]
+                                ]
+                            )
+                        )
+                    )
+                    if any(r["named_findings"] and r.get("ems_before") for r in scored)
+                    else "–",
+                ],
+                ["named findings", str(len(named_all))],
+                ["  with held-out improvement > 0", f"{with_gain}"],
+                ["  median held-out improvement", _g(float(np.median(held))) if held else "–"],
+            ],
+        ),
+        "",
+    ]
+    # wall time ----------------------------------------------------------------------------
+    wt_rows = []
+    for d in sorted({r["duration"] for r in scored}):
+        ws = [r["wall_s"] for r in scored if r["duration"] == d and r["wall_s"] is not None]
+        if ws:
+            wt_rows.append(
+                [
+                    f"{d:g} s",
+                    len(ws),
+                    _g(float(np.median(ws)), ".1f"),
+                    _g(ws[0], ".1f"),
+                    _g(float(np.max(ws)), ".1f"),
+                ]
+            )
+    lines += [
+        "## Diagnose wall time per case",
+        "",
+        _table(["length", "cases", "median [s]", "first case (compiles) [s]", "max [s]"], wt_rows),
+        "",
+    ]
+    # concealment as generated -------------------------------------------------------------
+    gen_rows = []
+    for e in effects:
+        for lv in levels:
+            rs = [r for r in eff_rows if r["effect"] == e and r["level"] == lv]
+            if not rs:
+                continue
+            gen_rows.append(
+                [
+                    e,
+                    f"{lv:g}",
+                    _g(float(np.median([r["c_out"] for r in rs])), ".3g"),
+                    _g(float(np.median([r["c_refit"] for r in rs])), ".3g"),
+                    _g(
+                        float(np.median([r["c_ee"] for r in rs]))
+                        if all(r.get("c_ee") is not None for r in rs)
+                        else None,
+                        ".3g",
+                    ),
+                    _g(
+                        float(np.median([r["c_fit"] for r in rs]))
+                        if all(r.get("c_fit") is not None for r in rs)
+                        else None,
+                        ".3g",
+                    ),
+                    _g(float(np.max([r["raw_rms"] for r in rs])), ".3g"),
+                    _g(
+                        float(np.median([r["absorbed"] for r in rs if r["absorbed"] is not None])),
+                        ".3f",
+                    ),
+                    f"{sum(not r['reached'] for r in rs)}/{len(rs)}",
+                ]
+            )
+    lines += [
+        "## Concealment as generated",
+        "",
+        "c (median): output-error concealment ‖(I − P_J)·s‖/σ_x; c_refit (median): "
+        "‖x_effect − x_sim(θ)‖/σ_x after a crude nonlinear refit of the 26 base parameters "
+        "(the equation-error absorbing step, then chord Gauss–Newton with J fixed at the "
+        "truth, inside the config's box) — an upper bound on what the base cannot absorb in "
+        "output error; ≈ c where the linear projection holds, ≫ c where the signature is far "
+        "too large for it (then c is not trustworthy, and neither is c_refit as an estimate); "
+        "max rms(s)/σ_x; fraction of ‖s‖² absorbed by span J (median); cases whose target "
+        "was not reached within 1 %. "
+        "c_ee (median): what the diagnosis' score test can see, ‖(I − P_{J_w})·W·δr‖/σ_x with "
+        "δr the effect's change of the equation-error residual at the truth, W the "
+        "diagnosis' whitener, J_w the whitened base Jacobian (its square is the score test's "
+        "noncentrality). c_fit (median): excess of the diagnosis' base fit over pure noise, "
+        "√(RSS_w/σ_x² − RSS_w/σ̂²) — what the diagnosis was actually left with.",
+        "",
+        _table(
+            [
+                "effect",
+                "target level",
+                "c",
+                "c_refit",
+                "c_ee",
+                "c_fit",
+                "max rms(s)/σ_x",
+                "absorbed",
+                "not reached",
+            ],
+            gen_rows,
+        ),
+        "",
+    ]
+    # per case -----------------------------------------------------------------------------
+    case_rows = [
+        [
+            r["case"],
+            r["effect"],
+            r["truth_params"] or "–",
+            f"{r['level']:g}",
+            _g(r["c_out"], ".3g"),
+            _g(r["c_refit"], ".3g"),
+            _g(r.get("c_ee"), ".3g"),
+            _g(r.get("c_fit"), ".3g"),
+            _g(r.get("sigma_ratio"), ".2f"),
+            _g(r["raw_rms"], ".3g"),
+            ", ".join(r["names"]) or ("error" if r["error"] else "none"),
+            _g(r.get("first_delta_bic"), ".1f"),
+            _g(r.get("first_p"), ".2g"),
+            ", ".join(_g(h, ".2f") for h in r["heldout"]) or "–",
+            _g(r["wall_s"], ".0f"),
+        ]
+        for r in sorted(scored, key=lambda r: (r["duration"], r["effect"], r["level"], r["case"]))
+    ]
+    lines += [
+        "## Every case",
+        "",
+        "c: output-error concealment; c_refit: its crude nonlinear upper bound; c_ee: "
+        "equation-error (whitened) concealment at the truth; c_fit = √(RSS_w/σ_x² − "
+        "RSS_w/σ̂²): the excess of the diagnosis' own base fit over pure noise, in σ_x (what it "
+        "was left with; noisy, ±~6 near zero); σ̂/σ: the diagnosis' noise estimate over the "
+        "true σ_x; ΔBIC₁, p₁: of the first finding; held-out: improvement of each named "
+        "finding.",
+        "",
+        _table(
+            [
+                "case",
+                "hidden",
+                "hidden parameters (SI)",
+                "target level",
+                "c",
+                "c_refit",
+                "c_ee",
+                "c_fit",
+                "σ̂/σ",
+                "rms/σ",
+                "findings",
+                "ΔBIC₁",
+                "p₁",
+                "held-out",
+                "wall [s]",
+            ],
+            case_rows,
+        ),
+        "",
+    ]
+    errors = [r for r in scored if r["error"]]
+    if errors:
+        lines += (
+            ["## Errors", ""]
+            + [f"- {r['case']} ({r['effect']}): {r['error']}" for r in errors]
+            + [""]
+        )
+    plots = make_plots(scored, effects, levels, truth_labels, found_labels, out)
+    lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots] + [""]
+    text = "\n".join(lines)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    from fricjax.io.atomic import write_text_atomic
+
+    write_text_atomic(out, text)
+    return text
+
+
+def make_plots(
+    scored: list[dict[str, Any]],
+    effects: list[str],
+    levels: list[float],
+    truth_labels: list[str],
+    found_labels: list[str],
+    out: Path,
+) -> list[Path]:
+    """Detection / top-1 rate vs concealment per effect; confusion-matrix heat map."""
+    from fricjax.report.plots import plt, save
+
+    paths = []
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    for ax, key, title in (
+        (axes[0], "detected", "detection (any finding)"),
+        (axes[1], "top1", "top-1 naming"),
+    ):
+        for i, e in enumerate(effects):
+            rate = []
+            for lv in levels:
+                rs = [r for r in scored if r["effect"] == e and r["level"] == lv and r["on_level"]]
+                rate.append(np.mean([r[key] for r in rs]) if rs else np.nan)
+            ax.plot(levels, rate, marker="o", lw=1.2, color=plt.cm.tab20(i % 20), label=e)
+        ax.set_xlabel("concealment c = ‖(I − P_J)s‖/σ_x")
+        ax.set_title(title)
+        ax.set_ylim(-0.05, 1.05)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("rate")
+    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    paths.append(save(fig, out.with_name(f"{out.stem}_detection.png")))
+
+    # every case against what the score test can see (c_ee), outcome by marker
+    pts = [r for r in scored if r["effect"] != gen.NULL and r.get("c_ee") is not None]
+    if pts:
+        fig, ax = plt.subplots(figsize=(10, 4.8))
+        outcome = {
+            "named first": ("o", "C2"),
+            "named later": ("s", "C1"),
+            "other finding": ("^", "C3"),
+            "nothing found": ("x", "0.4"),
+        }
+
+        def kind(r: dict) -> str:
+            if r["top1"]:
+                return "named first"
+            if r["named_any"]:
+                return "named later"
+            return "other finding" if r["detected"] else "nothing found"
+
+        for label, (marker, color) in outcome.items():
+            sel = [r for r in pts if kind(r) == label]
+            if sel:
+                ax.scatter(
+                    [max(r["c_ee"], 1e-3) for r in sel],
+                    [effects.index(r["effect"]) for r in sel],
+                    marker=marker,
+                    color=color,
+                    label=label,
+                    s=40,
+                )
+        ax.set_xscale("log")
+        ax.set_yticks(range(len(effects)), effects, fontsize=8)
+        ax.set_xlabel("c_ee = ‖(I − P_Jw)·W·δr‖/σ_x (what the score test sees)")
+        ax.set_title("outcome of every case against its equation-error visibility")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
+        fig.tight_layout()
+        paths.append(save(fig, out.with_name(f"{out.stem}_visibility.png")))
+
+    mat = np.zeros((len(truth_labels), len(found_labels)))
+    for r in scored:
+        if r["effect"] in truth_labels and r["first"] in found_labels:
+            mat[truth_labels.index(r["effect"]), found_labels.index(r["first"])] += 1
+    fig, ax = plt.subplots(figsize=(1.0 + 0.6 * len(found_labels), 1.2 + 0.5 * len(truth_labels)))
+    ax.imshow(mat, cmap="Blues", aspect="auto")
+    for i in range(mat.shape[0]):
+        for j in range(mat.shape[1]):
+            if mat[i, j]:
+                ax.text(
+                    j,
+                    i,
+                    f"{int(mat[i, j])}",
+                    ha="center",
+                    va="center",
+                    fontsize=8,
+                    color="white" if mat[i, j] > 0.6 * mat.max() else "black",
+                )
+    ax.set_xticks(range(len(found_labels)), found_labels, rotation=60, ha="right", fontsize=8)
+    ax.set_yticks(range(len(truth_labels)), truth_labels, fontsize=8)
+    ax.set_xlabel("first finding")
+    ax.set_ylabel("hidden effect")
+    ax.set_title("confusion matrix (counts)")
+    fig.tight_layout()
+    paths.append(save(fig, out.with_name(f"{out.stem}_confusion.png")))
+    return paths
+
+
+# -- main ------------------------------------------------------------------------------------
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=str(DEFAULT_DATA), help="case directory (generated)")
+    ap.add_argument("--out", default=str(DEFAULT_OUT), help="Markdown report (PNGs beside)")
+    ap.add_argument("--cases", default="all", help="effects, comma-separated; none = nulls")
+    ap.add_argument("--levels", default=",".join(f"{v:g}" for v in gen.DEFAULT_LEVELS))
+    ap.add_argument("--lengths", default=",".join(f"{v:g}" for v in gen.DEFAULT_LENGTHS))
+    ap.add_argument("--reps", type=int, default=1, help="replicates per effect and level")
+    ap.add_argument("--nulls", type=int, default=6, help="null cases per length")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (1: this one)")
+    ap.add_argument("--resume", action="store_true", help="reuse per-case diagnoses in DATA")
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="diagnose nothing: report the per-case diagnoses already in DATA (cases "
+        "without one are listed as not run)",
+    )
+    ap.add_argument(
+        "--measure", choices=gen.MEASURES, default="output", help="concealment scaled to"
+    )
+    ap.add_argument("--note", default="", help="free text for the report's header")
+    ap.add_argument(
+        "--reverse",
+        action="store_true",
+        help="diagnose in reverse order (a second run on the same DATA meets the first)",
+    )
+    args = ap.parse_args(argv)
+    t_start = time.time()
+    effects, with_nulls = gen.parse_effects(args.cases)
+    specs = run_order(
+        gen.case_specs(
+            effects,
+            gen.parse_floats(args.levels),
+            gen.parse_floats(args.lengths),
+            args.reps,
+            args.nulls if with_nulls else 0,
+        )
+    )
+    data = Path(args.data)
+    load_start = machine()
+    commit, status = git_state()
+    rows = ensure_cases(data, specs, args.seed, args.measure, lambda m: print(m, flush=True))
+    t_gen = time.time() - t_start
+    if args.report_only:
+        results = {}
+        for row in rows:
+            path = data / "diagnosis" / f"{row['case']}.json"
+            if path.is_file():
+                results[row["case"]] = json.loads(path.read_text())
+    else:
+        results = run_all(
+            rows, data, data / "diagnosis", args.jobs, args.resume, reverse=args.reverse
+        )
+        for row in rows:  # cases another run on the same folder finished meanwhile
+            path = data / "diagnosis" / f"{row['case']}.json"
+            if row["case"] not in results and path.is_file():
+                results[row["case"]] = json.loads(path.read_text())
+    t_diag = time.time() - t_start - t_gen
+    not_run = [row["case"] for row in rows if row["case"] not in results]
+    # only now, after every diagnosis: the truth
+    scored = []
+    for row in rows:
+        if row["case"] not in results:
+            continue
+        truth = json.loads((data / row["truth"]).read_text())
+        scored.append(score_case(truth, results[row["case"]]))
+        try:
+            scored[-1]["c_ee"] = equation_error_concealment(truth, data / row["recording"])
+        except Exception as err:  # scoring extra; the diagnosis API may change under us
+            print(f"c_ee of {row['case']}: {type(err).__name__}: {err}", file=sys.stderr)
+            scored[-1]["c_ee"] = None
+    n_null = sum(s.effect == gen.NULL for s in specs)
+    header = {
+        "command": "python benchmarks/concealed/score.py " + " ".join(argv or sys.argv[1:]),
+        "cases": f"{len(rows)} requested ({len(rows) - n_null} with an effect, {n_null} nulls); "
+        f"{len(scored)} diagnosed"
+        + (f"; NOT run (interrupted): {len(not_run)}" if not_run else ""),
+        "concealment scaled to": {
+            "output": "c (output error, displacement)",
+            "equation": "c_ee (equation error, whitened: what the score test sees)",
+        }[args.measure],
+        "effects": ", ".join(effects) + (", none" if with_nulls else ""),
+        "levels c": args.levels,
+        "lengths [s]": args.lengths,
+        "replicates": str(args.reps),
+        "seed": str(args.seed),
+        "diagnose settings": "configs/paper.toml ([search], [anneal], [diagnose] defaults)",
+        "machine": f"{load_start} at start; {machine()} at end",
+        "jobs": str(args.jobs),
+        "generation wall time": f"{t_gen:.0f} s",
+        "diagnosis wall time": f"{t_diag:.0f} s"
+        + (" (resumed)" if args.resume else "")
+        + (" (report only)" if args.report_only else ""),
+        "git commit": commit,
+        "git status --short fricjax configs": "<br>".join(status.splitlines()) or "(clean)",
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+    if args.note:
+        header["note"] = args.note
+    text = report(scored, Path(args.out), header, args.measure)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,159 @@
+"""Concealed-effect benchmark generator (benchmarks/concealed/generate.py): the concealment
+it reports (output error c, equation error c_ee) is the one its recordings carry, the truth
+lives apart from the recording, null cases carry no effect, and the same seed writes the
+same files."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import fricjax  # noqa: F401  (float64 on)
+from fricjax.config import Config
+from fricjax.data.recording import read_recording
+from fricjax.data.twin import PAPER_MODEL
+from fricjax.diagnose.catalogue import ExtraHarmonic
+from fricjax.diagnose.locate import default_whitener, jacobian
+from fricjax.problem import build_problem
+
+ROOT = Path(__file__).resolve().parents[1]
+# A short record and few sub-steps keep the three compilations (base, effect, Jacobian) small.
+DURATION = 0.272
+SUBSTEPS = 4
+LEVEL = 5.0
+SEED = 3
+
+
+def _load_generator():
+    path = ROOT / "benchmarks" / "concealed" / "generate.py"
+    spec = importlib.util.spec_from_file_location("concealed_generate", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve their module by name
+    spec.loader.exec_module(module)
+    return module
+
+
+gen = _load_generator()
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory: pytest.TempPathFactory, paper_config: Config) -> dict:
+    """An extra_harmonic case (c = 5) and a null case, generated twice into two folders."""
+    specs = [
+        gen.CaseSpec("extra_harmonic", LEVEL, DURATION, 0),
+        gen.CaseSpec(gen.NULL, 0.0, DURATION, 0),
+    ]
+    dirs = [tmp_path_factory.mktemp("concealed_a"), tmp_path_factory.mktemp("concealed_b")]
+    manifests = [
+        gen.generate(d, specs, seed=SEED, substeps=SUBSTEPS, config=paper_config) for d in dirs
+    ]
+    return {"specs": specs, "dirs": dirs, "manifests": manifests}
+
+
+def _truth(written: dict, i: int) -> tuple[Path, dict]:
+    row = written["manifests"][0]["cases"][i]
+    folder = written["dirs"][0]
+    return folder / row["recording"], json.loads((folder / row["truth"]).read_text())
+
+
+def test_concealment_hits_target(written: dict, paper_config: Config) -> None:
+    """Re-simulating from the truth file alone: ‖(I − P_J)·s‖/σ_x within 5 % of the target,
+    with P_J from least squares (independent of the generator's SVD projector)."""
+    rec_path, truth = _truth(written, 0)
+    assert truth["effect"] == "extra_harmonic" and truth["reached"]
+    t = np.asarray(read_recording(rec_path).t)
+    base = truth["base"]
+    x_base, _ = gen.simulate_x(PAPER_MODEL, base, t, SUBSTEPS)
+    model = PAPER_MODEL.with_terms([ExtraHarmonic()])
+    x_eff, _ = gen.simulate_x(model, {**base, **truth["params"]}, t, SUBSTEPS)
+    s = x_eff - x_base
+    jac = gen.base_jacobian(base, t, paper_config, SUBSTEPS)
+    jac = jac / np.linalg.norm(jac, axis=0)  # N and rad columns: scale must not decide the rank
+    coef, *_ = np.linalg.lstsq(jac, s, rcond=None)
+    c = np.linalg.norm(s - jac @ coef) / truth["noise_std_m"]
+    assert c == pytest.approx(LEVEL, rel=0.05)
+    assert truth["concealment"] == pytest.approx(c, rel=1e-3)
+    assert np.sqrt(np.mean(s**2)) / truth["noise_std_m"] == pytest.approx(
+        truth["raw_rms_over_sigma"], rel=1e-9
+    )
+    # the base absorbs part of the signature (its 10 harmonics, on a 0.27 s record)
+    assert 0.0 < truth["absorbed_fraction"] < 1.0
+    absorbed = 1.0 - (c * truth["noise_std_m"]) ** 2 / (s @ s)
+    assert truth["absorbed_fraction"] == pytest.approx(absorbed, rel=1e-3)
+
+
+def test_truth_is_separate(written: dict) -> None:
+    """The recording has no /truth group and nothing in it names the hidden effect; the
+    truth file does."""
+    rec_path, truth = _truth(written, 0)
+    with h5py.File(rec_path, "r") as f:
+        assert "truth" not in f
+        assert set(f.keys()) == {"t", "x"}
+        text = " ".join(str(v) for v in f.attrs.values())
+    for word in ("extra_harmonic", "harmonic", "harm_"):
+        assert word not in text and word not in rec_path.name
+    assert truth["effect"] == "extra_harmonic"
+    assert set(truth["params"]) == {"harm_A", "harm_B", "harm_f"}
+    rec = read_recording(rec_path)
+    assert rec.sha256() == truth["recording_sha256"]
+    assert rec.mass == pytest.approx(truth["base"]["mass"])
+
+
+def test_null_has_no_effect(written: dict) -> None:
+    """A null recording is the varied base plant plus the case's noise, to rounding."""
+    rec_path, truth = _truth(written, 1)
+    assert truth["effect"] == gen.NULL and truth["params"] == {}
+    assert truth["concealment"] == 0.0 and truth["raw_rms_over_sigma"] == 0.0
+    assert truth["concealment_output"] == 0.0 and truth["concealment_ee"] == 0.0
+    rec = read_recording(rec_path)
+    t = np.asarray(rec.t)
+    x_base, _ = gen.simulate_x(PAPER_MODEL, truth["base"], t, SUBSTEPS)
+    _, rng_noise = gen.case_rngs(written["specs"][1], SEED)
+    noise = rng_noise.normal(0.0, truth["noise_std_m"], t.size)
+    np.testing.assert_allclose(np.asarray(rec.x) - x_base, noise, rtol=0, atol=1e-15)
+
+
+def test_same_seed_same_files(written: dict, paper_config: Config) -> None:
+    """Two generations with one seed: byte-identical recordings (sha256 of the files);
+    another seed gives another recording."""
+    a, b = written["dirs"]
+    for row_a, row_b in zip(*(m["cases"] for m in written["manifests"]), strict=True):
+        assert row_a == row_b
+        assert _sha256(a / row_a["recording"]) == _sha256(b / row_b["recording"])
+    other = gen.make_case(written["specs"][1], SEED + 1, paper_config, substeps=SUBSTEPS)
+    assert other.recording.sha256() != written["manifests"][0]["cases"][1]["sha256"]
+
+
+def test_equation_measure_hits_target(paper_config: Config) -> None:
+    """Scaled to c_ee (what the score test sees): ‖(I − P_{J_w})·W·δr‖/σ_x recomputed from
+    the recording and the harmonic's force law alone is the recorded c_ee and the target
+    within 5 %; the measure enters the case id."""
+    spec = gen.CaseSpec("extra_harmonic", LEVEL, DURATION, 0)
+    case = gen.make_case(spec, SEED, paper_config, substeps=SUBSTEPS, measure="equation")
+    truth = case.truth
+    assert truth["measure"] == "equation" and truth["reached"]
+    assert case.case_id != spec.case_id(SEED)
+    problem = build_problem(case.recording, paper_config)
+    theta0 = problem.theta(truth["base"])
+    p, t = truth["params"], np.asarray(problem.t)
+    phase = 2.0 * np.pi * p["harm_f"] * t
+    delta_r = -(p["harm_A"] * np.sin(phase) + p["harm_B"] * np.cos(phase))  # a drive force
+    wh = default_whitener(problem, theta0)
+    jw, z = wh(jacobian(problem, theta0)), wh(delta_r)
+    jw = jw / np.linalg.norm(jw, axis=0)  # N and rad columns: scale must not decide the rank
+    coef, *_ = np.linalg.lstsq(jw, z, rcond=None)
+    c = np.linalg.norm(z - jw @ coef) / truth["noise_std_m"]
+    assert c == pytest.approx(truth["concealment_ee"], rel=1e-6)
+    assert c == pytest.approx(LEVEL, rel=0.05)
