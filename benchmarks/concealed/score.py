@@ -848,7 +848,7 @@ def report(
             + [f"- {r['case']} ({r['effect']}): {r['error']}" for r in errors]
             + [""]
         )
-    plots = make_plots(scored, effects, levels, truth_labels, found_labels, out)
+    plots = make_plots(scored, effects, levels, truth_labels, found_labels, out, measure)
     lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots] + [""]
     text = "\n".join(lines)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -865,28 +865,43 @@ def make_plots(
     truth_labels: list[str],
     found_labels: list[str],
     out: Path,
+    measure: str = "output",
 ) -> list[Path]:
     """Detection / top-1 rate vs concealment per effect; confusion-matrix heat map."""
     from fricjax.report.plots import plt, save
 
+    symbol = "c_ee, equation error" if measure == "equation" else "c, output error"
+
     paths = []
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    # rate per effect (rows) and level (columns), as heat maps with k/n in each cell
+    fig, axes = plt.subplots(
+        1, 2, figsize=(4.0 + 1.6 * len(levels), 1.5 + 0.4 * len(effects)), sharey=True
+    )
     for ax, key, title in (
         (axes[0], "detected", "detection (any finding)"),
         (axes[1], "top1", "top-1 naming"),
     ):
+        rate = np.full((len(effects), len(levels)), np.nan)
         for i, e in enumerate(effects):
-            rate = []
-            for lv in levels:
+            for j, lv in enumerate(levels):
                 rs = [r for r in scored if r["effect"] == e and r["level"] == lv and r["on_level"]]
-                rate.append(np.mean([r[key] for r in rs]) if rs else np.nan)
-            ax.plot(levels, rate, marker="o", lw=1.2, color=plt.cm.tab20(i % 20), label=e)
-        ax.set_xlabel("concealment c = ‖(I − P_J)s‖/σ_x")
+                if rs:
+                    rate[i, j] = np.mean([r[key] for r in rs])
+                    ax.text(
+                        j,
+                        i,
+                        f"{sum(r[key] for r in rs)}/{len(rs)}",
+                        ha="center",
+                        va="center",
+                        fontsize=8,
+                    )
+                else:
+                    ax.text(j, i, "not reached", ha="center", va="center", fontsize=7)
+        ax.imshow(np.ma.masked_invalid(rate), cmap="RdYlGn", vmin=0.0, vmax=1.0, aspect="auto")
+        ax.set_xticks(range(len(levels)), [f"{lv:g}" for lv in levels])
+        ax.set_xlabel(f"concealment level ({symbol})")
         ax.set_title(title)
-        ax.set_ylim(-0.05, 1.05)
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("rate")
-    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    axes[0].set_yticks(range(len(effects)), effects, fontsize=8)
     fig.tight_layout()
     paths.append(save(fig, out.with_name(f"{out.stem}_detection.png")))
 
@@ -924,7 +939,7 @@ def make_plots(
         ax.set_xlabel("c_ee = ‖(I − P_Jw)·W·δr‖/σ_x (what the score test sees)")
         ax.set_title("outcome of every case against its equation-error visibility")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
         fig.tight_layout()
         paths.append(save(fig, out.with_name(f"{out.stem}_visibility.png")))
 
@@ -1045,14 +1060,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         "replicates": str(args.reps),
         "seed": str(args.seed),
         "diagnose settings": "configs/paper.toml ([search], [anneal], [diagnose] defaults)",
-        "machine": f"{load_start} at start; {machine()} at end",
+        ("machine (report assembled on)" if args.report_only else "machine"): (
+            f"{load_start} at start; {machine()} at end"
+        ),
         "jobs": str(args.jobs),
         "generation wall time": f"{t_gen:.0f} s",
         "diagnosis wall time": f"{t_diag:.0f} s"
         + (" (resumed)" if args.resume else "")
         + (" (report only)" if args.report_only else ""),
-        "git commit": commit,
-        "git status --short fricjax configs": "<br>".join(status.splitlines()) or "(clean)",
+        ("git commit (at report time)" if args.report_only else "git commit"): commit,
+        (
+            "git status --short fricjax configs (at report time)"
+            if args.report_only
+            else "git status --short fricjax configs"
+        ): "<br>".join(status.splitlines()) or "(clean)",
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
     if args.note:
