@@ -39,7 +39,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
-from scipy import signal
 
 from fricjax.errors import FricjaxError, where
 
@@ -63,6 +62,8 @@ def antialias_kernel(q: int, *, tol: float = 1e-13) -> Float[np.ndarray, " L"]:
     """
     if isinstance(q, bool) or not isinstance(q, int | np.integer) or q < 2:
         raise FricjaxError(f"{where('decimate', 'q')}: must be an integer >= 2, got {q!r}")
+    from scipy import signal  # lazily: importing scipy.signal costs ~0.6 s of CPU
+
     sos = signal.cheby1(CHEBY_ORDER, CHEBY_RIPPLE_DB, 0.8 / int(q), output="sos")
     # The slowest pole decays within a few hundred samples per unit of q; 400·q samples
     # hold the response down to far below tol.

@@ -55,7 +55,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
-from scipy import signal
 
 from fricjax.errors import FricjaxError, where
 from fricjax.model.registry import register
@@ -476,6 +475,8 @@ def cutoff_hz(problem: Problem) -> float:
         return nyq
     if s.method == "butterworth":
         return min(float(s.cutoff_hz), nyq)
+    from scipy import signal  # lazily: importing scipy.signal costs ~0.6 s of CPU
+
     coeffs = signal.savgol_coeffs(s.savgol_window, s.savgol_polyorder)
     freq, resp = signal.freqz(coeffs, worN=4096, fs=1.0 / dt)
     below = np.nonzero(np.abs(resp) < 1.0 / math.sqrt(2.0))[0]
