@@ -139,55 +139,53 @@ class LevelInfo(NamedTuple):
 
 
 @eqx.filter_jit
-def _sample(
+def _start(
+    algorithm: Algorithm,
     key: Array,
     cost_fn: CostFn,
+    x0: Float[Array, "C d"] | None,
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
+    settings: AnnealSettings,
     n_samples: int,
     n_chains: int,
-) -> tuple[Float[Array, ""], Float[Array, "C d"], Array]:
-    """δ of eq. 15, start points and one key per chain (independent of the algorithm, so
-    compiled once per cost).
+    n_pad: int,
+) -> tuple[Float[Array, ""], Any]:
+    """δ of eq. 15 and the initial states of ``n_pad ≥ C`` chains.
 
-    ``n_chains + n_samples`` uniform points are evaluated; δ comes from the last
-    ``n_samples``. Chain i starts at point i unless its cost is not finite: start points
+    ``n_chains + n_samples`` uniform points are drawn and mapped by the algorithm's
+    ``prepare`` (DSAA: onto its grid); δ is the cost range over the last ``n_samples``.
+    Without ``x0``, chain i starts at point i unless its cost is not finite: start points
     are the first ``n_chains`` points with a finite cost (uniform over the finite part of
-    the box), so no chain begins stranded in a forbidden region.
+    the box), so no chain begins stranded in a forbidden region; ``x0`` [C, d] replaces
+    them when given. Padding copies chain 0, so the real chains do not depend on the
+    device count.
+
+    One program, one batched cost call: every program that contains the cost traces and
+    compiles it again (with the separable path's linear solve inlined, ~1-1.6 s of XLA
+    compilation each on 2 cores), and ``fricjax identify`` runs exactly one of these.
     """
     key_box, key_chains = jax.random.split(key)
     # One flat draw serves the start points and the temperature sample: each random call
     # site adds compile time, a 2-D draw more than twice that of a 1-D one.
-    shape = (n_chains + n_samples, lower.shape[0])
-    u = jax.random.uniform(key_box, (shape[0] * shape[1],), dtype=lower.dtype).reshape(shape)
-    points = jnp.clip(lower + u * (upper - lower), lower, upper)
+    n_box = n_chains + n_samples
+    u = jax.random.uniform(key_box, (n_box * lower.shape[0],), dtype=lower.dtype)
+    points = jnp.clip(lower + u.reshape(n_box, -1) * (upper - lower), lower, upper)
+    if x0 is not None:
+        points = jnp.concatenate([points, x0])
+    points = jax.vmap(lambda x: algorithm.prepare(x, lower, upper, settings))(points)
     costs = jax.vmap(cost_fn)(points)
-    delta = finite_range(costs[n_chains:])
-    order = jnp.argsort(~jnp.isfinite(costs), stable=True)
-    return delta, points[order[:n_chains]], jax.random.split(key_chains, n_chains)
-
-
-@eqx.filter_jit
-def _init(
-    algorithm: Algorithm,
-    keys: Array,
-    cost_fn: CostFn,
-    x0: Float[Array, "C d"],
-    lower: Float[Array, " d"],
-    upper: Float[Array, " d"],
-    settings: AnnealSettings,
-    n_pad: int,
-) -> Any:
-    """Initial states of ``n_pad ≥ C`` chains; padding copies chain 0, so the real chains
-    do not depend on the device count."""
-    extra = n_pad - x0.shape[0]
-    x0 = jnp.concatenate([x0, jnp.repeat(x0[:1], extra, axis=0)])
-    keys = jnp.concatenate([keys, jnp.repeat(keys[:1], extra, axis=0)])
-    x0 = jax.vmap(lambda x: algorithm.prepare(x, lower, upper, settings))(x0)
-    cost0 = jax.vmap(cost_fn)(x0)
-    return jax.vmap(lambda k, x, c: algorithm.init(k, x, c, lower, upper, settings))(
-        keys, x0, cost0
-    )
+    delta = finite_range(costs[n_chains:n_box])
+    if x0 is None:
+        order = jnp.argsort(~jnp.isfinite(costs), stable=True)[:n_chains]
+        xs, cs = points[order], costs[order]
+    else:
+        xs, cs = points[n_box:], costs[n_box:]
+    keys = jax.random.split(key_chains, n_chains)
+    extra = n_pad - n_chains
+    xs, cs, keys = (jnp.concatenate([a, jnp.repeat(a[:1], extra, axis=0)]) for a in (xs, cs, keys))
+    states = jax.vmap(lambda k, x, c: algorithm.init(k, x, c, lower, upper, settings))(keys, xs, cs)
+    return delta, states
 
 
 @eqx.filter_jit
@@ -298,11 +296,18 @@ def run_chains(
     start = time.perf_counter()
     lower_j, upper_j = jnp.asarray(lo), jnp.asarray(hi)
     on_device = _device_settings(settings)
-    delta, x_uniform, keys = _sample(
-        key, cost_fn, lower_j, upper_j, settings.n_temperature_samples, n_chains
+    delta, states = _start(
+        algorithm,
+        key,
+        cost_fn,
+        x_start,
+        lower_j,
+        upper_j,
+        on_device,
+        settings.n_temperature_samples,
+        n_chains,
+        n_pad,
     )
-    x_start = x_uniform if x_start is None else x_start
-    states = _init(algorithm, keys, cost_fn, x_start, lower_j, upper_j, on_device, n_pad)
     t0 = settings.K * float(delta)
     if math.isnan(t0):
         raise FricjaxError(
