@@ -61,11 +61,12 @@ from fricjax.diagnose.whiten import (
     Whitener,
     linear_damping,
     make_whitener,
+    noise_spectrum,
     reversal_mask,
     robust_sigma,
 )
 from fricjax.errors import FricjaxError, where
-from fricjax.problem import Problem
+from fricjax.problem import Problem, needs_input
 
 VARIABLES: tuple[str, ...] = (
     "time",
@@ -522,28 +523,61 @@ def _cross_p(test: CrossTest | None, rp: np.ndarray, sigma2: float, dof: int) ->
 # -- the plan and the report ---------------------------------------------------------------
 
 
-def default_whitener(problem: Problem, theta: Float[np.ndarray, " d"]) -> Whitener:
+#: Noise models of :func:`default_whitener`.
+NOISE_MODELS = ("auto", "position", "spectral")
+
+
+def resolve_noise(problem: Problem, noise: str = "auto") -> str:
+    """``"auto"`` -> ``"spectral"`` when the model's drive is a recorded input (its noise,
+    and the loop's, enter the residual as force, with a colour the displacement noise
+    model does not describe), else ``"position"`` (the displacement sensor is the only
+    noisy measurement, as on the paper twin)."""
+    if noise not in NOISE_MODELS:
+        raise FricjaxError(
+            f"{where(problem.source or None, '[diagnose].noise')}: unknown noise model "
+            f"{noise!r} (valid: {', '.join(NOISE_MODELS)})"
+        )
+    if noise != "auto":
+        return noise
+    return "spectral" if needs_input(problem.model) else "position"
+
+
+def default_whitener(
+    problem: Problem, theta: Float[np.ndarray, " d"], noise: str = "auto"
+) -> Whitener:
     """Whitener with the linearised damping at theta; when the model's friction jumps at
     v = 0 (nonzero static friction at theta), the samples near velocity reversals are
     excluded (|v| < 4·σ_v, σ̂_x from a first whitening by :func:`robust_sigma`): there the
-    sign flips of the Coulomb term dominate the low bins (:mod:`fricjax.diagnose.whiten`)."""
+    sign flips of the Coulomb term dominate the low bins (:mod:`fricjax.diagnose.whiten`).
+
+    ``noise`` (:func:`resolve_noise`): ``"position"`` = displacement noise only (exact
+    whitener); ``"spectral"`` scales every bin by the residual's own smoothed spectrum at
+    theta (:func:`~fricjax.diagnose.whiten.noise_spectrum`); the reversal mask still comes
+    from the displacement noise σ̂_x (it is about sign flips of v, which only x-noise
+    causes)."""
+    noise = resolve_noise(problem, noise)
     c = linear_damping(problem, theta)
     first = make_whitener(problem, damping=c)
+    spectrum = None
+    if noise == "spectral":
+        dt = float((problem.t[-1] - problem.t[0]) / (problem.n - 1))
+        spectrum = noise_spectrum(np.asarray(problem.residual(theta)), dt)
     p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
     jump = np.asarray(problem.model.static(p, problem.signals, jnp.ones(problem.n)))
     if not np.any(np.abs(jump) > 0):
-        return first
+        return first if spectrum is None else make_whitener(problem, spectrum=spectrum)
     sigma = robust_sigma(first, first(problem.residual(theta)))
     mask = reversal_mask(problem, sigma)
     # A badly fitting base model inflates σ̂ and with it the mask, until almost every sample
     # is "near a reversal" and nothing is left to test: keep at most MAX_EXCLUDED of the
     # samples, those of smallest |v| (where a sign flip is likeliest).
-    limit = int(min(MAX_EXCLUDED * problem.n, 0.4 * first.M))
+    M = first.M if spectrum is None else make_whitener(problem, spectrum=spectrum).M
+    limit = int(min(MAX_EXCLUDED * problem.n, 0.4 * M))
     if mask.sum() > limit:
         speed = np.abs(np.asarray(problem.v))
         mask = np.zeros(problem.n, dtype=bool)
         mask[np.argsort(speed, kind="stable")[:limit]] = True
-    return make_whitener(problem, damping=c, exclude=mask)
+    return make_whitener(problem, damping=c, exclude=mask, spectrum=spectrum)
 
 
 @eqx.filter_jit

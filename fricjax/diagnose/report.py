@@ -84,11 +84,21 @@ def residual_plots(diag: Diagnosis, out: Path) -> dict[str, Path]:
 
 def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
     """What is missing, where, how big, how sure, and the improvement."""
+    if diag.selection.whitener.spectral:
+        noise = (
+            "Noise model: the residual's own smoothed spectrum (a recorded drive input "
+            "brings force noise of its own colour); whitened noise scale "
+            f"{diag.extra.get('sigma_x_m', float('nan')):.3g} (1 = as estimated)."
+        )
+    else:
+        noise = (
+            "Noise level estimated from the whitened residual: "
+            f"σ_x ≈ {diag.extra.get('sigma_x_m', float('nan')):.3g} m."
+        )
     lines = [
         f"# Diagnosis of `{diag.recording}`",
         "",
-        f"Base model: `{diag.base_model}`. Noise level estimated from the whitened "
-        f"residual: σ_x ≈ {diag.extra.get('sigma_x_m', float('nan')):.3g} m.",
+        f"Base model: `{diag.base_model}`. {noise}",
         "",
     ]
     if not diag.findings:
@@ -129,6 +139,18 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
             f"{fmt(h['ems_after'], 6)} N² ({100 * h['improvement']:.1f} % better).",
             "",
         ]
+        named = [f for f in diag.findings if "heldout_improvement" in f]
+        if named:
+            lines += [
+                "Each finding's own held-out gain (model with it against the model before it):",
+                "",
+                *(
+                    f"- {f['effect']}: {100 * f['heldout_improvement']:+.1f} % "
+                    f"({'confirmed' if f.get('heldout_confirmed') else 'NOT confirmed'})"
+                    for f in named
+                ),
+                "",
+            ]
     lines += ["## Candidates scored at the first step", "", "```", _score_table(diag), "```", ""]
     lines += ["## Plots", ""] + [
         f"- [{k}]({p.name})" for k, p in paths.items() if p.suffix == ".png"

@@ -8,8 +8,10 @@ base and final fitted models.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -19,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fricjax.diagnose.catalogue import candidate
-from fricjax.diagnose.locate import LocateReport, default_whitener, locate
+from fricjax.diagnose.locate import NOISE_MODELS, LocateReport, default_whitener, locate
 from fricjax.diagnose.select import Selection, bic, forward_select, gls_fit, whitened_residual
 from fricjax.identify import IdentifySettings, identify
 from fricjax.io.atomic import atomic_path, write_text_atomic
@@ -37,6 +39,9 @@ class DiagnoseSettings:
     min_delta_bic: a term must lower BIC by more than this (10 = "very strong" evidence).
     max_terms: most terms added. n_mc: Monte Carlo draws calibrating each max-score.
     heldout: fraction of the record kept out of the fit for the held-out check.
+    noise: noise model of the whitening (``auto``: displacement noise, plus white force
+        noise fitted to the residual when the drive is a recorded input;
+        :func:`~fricjax.diagnose.locate.resolve_noise`).
     """
 
     alpha: float = 0.01
@@ -46,6 +51,7 @@ class DiagnoseSettings:
     heldout: float = 0.3
     seed: int = 0
     n_bins: int = 20
+    noise: str = "auto"
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "config") -> DiagnoseSettings:
@@ -62,6 +68,11 @@ class DiagnoseSettings:
         if not 0 < out.alpha < 1 or not 0 < out.heldout < 0.9:
             raise FricjaxError(
                 f"{where(source, '[diagnose]')}: alpha and heldout must be in (0, 1)"
+            )
+        if out.noise not in NOISE_MODELS:
+            raise FricjaxError(
+                f"{where(source, '[diagnose].noise')}: unknown noise model {out.noise!r} "
+                f"(valid: {', '.join(NOISE_MODELS)})"
             )
         return out
 
@@ -146,9 +157,18 @@ def heldout_check(
     final: tuple[Model, ParamSpec, np.ndarray],
     fraction: float,
     validation: Problem | None = None,
-) -> dict[str, float]:
+    noise: str = "auto",
+    steps: Sequence[tuple[Model, ParamSpec, np.ndarray]] = (),
+) -> dict[str, Any]:
     """Fit on the first (1 − fraction) of the record, evaluate EMS on the rest (or on a
-    second recording): the gain must survive on data the fit has not seen."""
+    second recording): the gain must survive on data the fit has not seen.
+
+    Every model is refitted (GLS in the whitened space of the base fit on the training
+    part) and scored by its EMS [N²] on the test part. ``steps``: the intermediate models
+    of forward selection (base + first term, base + first two, ...); their EMS gives each
+    finding its own held-out improvement ``1 − EMS_k/EMS_{k−1}`` (``step_improvements``),
+    not just the last model's.
+    """
     if validation is not None:
         train, test = problem, validation
         where_ = "second recording"
@@ -156,14 +176,23 @@ def heldout_check(
         k = round(problem.n * (1 - fraction))
         train, test = _split(problem, 0, k), _split(problem, k, problem.n)
         where_ = f"last {fraction:.0%} of the record"
-    out: dict[str, float] = {}
-    wh = default_whitener(train, base[2])
-    for label, (model, spec, theta) in (("before", base), ("after", final)):
+    wh = default_whitener(train, base[2], noise)
+
+    def test_ems(model: Model, spec: ParamSpec, theta: np.ndarray) -> float:
         fit_theta, _ = gls_fit(with_model(train, model, spec), model, spec, theta, wh)
-        test_pb = with_model(test, model, spec)
-        out[f"ems_{label}"] = test_pb.ems(fit_theta)
-    out["improvement"] = 1 - out["ems_after"] / out["ems_before"]
-    out["on"] = where_  # type: ignore[assignment]
+        return with_model(test, model, spec).ems(fit_theta)
+
+    chain = [base, *steps] if steps else [base, final]
+    ems = [test_ems(*m) for m in chain]
+    out: dict[str, Any] = {
+        "ems_before": ems[0],
+        "ems_after": ems[-1],
+        "improvement": 1 - ems[-1] / ems[0],
+        "on": where_,
+    }
+    if steps:
+        out["step_ems"] = ems[1:]
+        out["step_improvements"] = [1 - b / a for a, b in itertools.pairwise(ems)]
     return out
 
 
@@ -177,6 +206,15 @@ def _figures(
     return {"ems": pb.ems(theta), "bic": bic(rss, wh.dof, spec.n_free), "rss_whitened": rss}
 
 
+def _undecimated(problem: Problem | None) -> Problem | None:
+    """The problem without residual decimation (``[preprocess].decimate``): the whitener
+    selects the frequency band itself and needs the residual at every sample; decimation
+    (the IDIM recipe's noise reduction) would only hide samples from the maps."""
+    if problem is None or problem.preprocess is None or problem.preprocess.decimate == 1:
+        return problem
+    return replace(problem, preprocess=replace(problem.preprocess, decimate=1))
+
+
 def diagnose(
     problem: Problem,
     *,
@@ -187,6 +225,7 @@ def diagnose(
 ) -> Diagnosis:
     """The whole diagnosis of ``problem``'s base model (see module docstring)."""
     settings = settings or DiagnoseSettings()
+    problem, validation = _undecimated(problem), _undecimated(validation)
     run = identify(problem, identify_settings or IdentifySettings())
     sel = forward_select(
         problem,
@@ -196,6 +235,7 @@ def diagnose(
         max_terms=settings.max_terms,
         n_mc=settings.n_mc,
         seed=settings.seed,
+        noise=settings.noise,
     )
     wh = sel.whitener
     base = (problem.model, problem.spec, sel.base_theta)
@@ -237,9 +277,22 @@ def diagnose(
         findings.append(leftover)
     heldout: dict[str, float] = {}
     if findings and any(f["effect"] != "unexplained" for f in findings):
-        heldout = heldout_check(problem, base, final, settings.heldout, validation)
-        for f in findings:
-            f["heldout_improvement"] = heldout["improvement"]
+        chosen = [st.chosen for st in sel.steps if st.chosen is not None]
+        heldout = heldout_check(
+            problem,
+            base,
+            final,
+            settings.heldout,
+            validation,
+            settings.noise,
+            steps=[(c.model, c.spec, c.theta) for c in chosen],
+        )
+        named = [f for f in findings if f["effect"] != "unexplained"]
+        for f, gain in zip(named, heldout["step_improvements"], strict=True):
+            # Each finding's own gain on unseen data; a term that fits the training part
+            # but not the held-out one is reported as not confirmed, not silently kept.
+            f["heldout_improvement"] = gain
+            f["heldout_confirmed"] = bool(gain > 0)
     return Diagnosis(
         recording=recording or problem.name,
         base_model=problem.model.name,

@@ -335,10 +335,12 @@ def forward_select(
     n_refit: int = 2,
     n_mc: int = 2000,
     seed: int = 0,
+    noise: str = "auto",
 ) -> Selection:
-    """Add catalogue terms one at a time while they keep paying (module docstring)."""
+    """Add catalogue terms one at a time while they keep paying (module docstring);
+    ``noise``: the noise model of :func:`~fricjax.diagnose.locate.default_whitener`."""
     model, spec = problem.model, problem.spec
-    wh = default_whitener(problem, theta)
+    wh = default_whitener(problem, theta, noise)
     theta, rss = gls_fit(problem, model, spec, theta, wh)
     base_theta = theta.copy()
     steps: list[Step] = []

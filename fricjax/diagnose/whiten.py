@@ -111,6 +111,9 @@ class Whitener:
             so ``W·r_noise ~ N(0, σ_x²·(I − N Nᵀ))`` with ``dof = M − e`` degrees of freedom
             (e = 0 without ``exclude``).
         excluded: bool [n], the samples treated as missing.
+        spectral: True when the bins are scaled by a fitted residual spectrum
+            (:func:`noise_spectrum`) instead of the displacement-noise response; the
+            whitened vector is then unitless (noise variance ≈ 1 per entry).
     """
 
     n: int
@@ -128,6 +131,7 @@ class Whitener:
     H_max: float
     N: np.ndarray
     excluded: np.ndarray
+    spectral: bool = False
 
     @property
     def dof(self) -> int:
@@ -278,6 +282,7 @@ def make_whitener(
     rel_floor: float = 1e-3,
     mass: float | None = None,
     exclude: Float[np.ndarray, " n"] | None = None,
+    spectrum: Float[np.ndarray, " k"] | None = None,
 ) -> Whitener:
     """The exact whitener of ``problem``'s residual noise (module docstring).
 
@@ -290,6 +295,13 @@ def make_whitener(
             mass when it is free).
         exclude: optional bool mask [n] of samples treated as missing (e.g.
             :func:`reversal_mask`); default none.
+        spectrum: optional noise power S_k [N²] of the residual on the rfft grid
+            (k = 0 … n//2, e.g. :func:`noise_spectrum`): the bins are scaled by
+            ``1/√S_k`` instead of ``1/|H_k|``. For residuals whose noise is not the
+            displacement sensor's alone (a recorded drive input u enters ``g·u − m·a − F``
+            directly, with current ripple and the controller's feedback of encoder noise).
+            The edge correction, derived for displacement noise, is skipped (its rows
+            reach ``L`` samples from each end: 0.5 % of a 24.8 s EMPS record).
 
     Returns:
         :class:`Whitener` with ``W·r_noise ~ N(0, σ_x²·I_M)`` under the linearised model
@@ -322,6 +334,14 @@ def make_whitener(
     H = np.fft.rfft(_wrap(g, n))
     freqs = np.fft.rfftfreq(n, dt)
     f_stop = stop_band_hz(settings, dt)
+    if spectrum is not None:
+        spec_k = np.asarray(spectrum, dtype=np.float64)
+        if spec_k.shape != H.shape or not np.all(np.isfinite(spec_k) & (spec_k >= 0)):
+            raise FricjaxError(
+                f"{where(src, 'spectrum')}: must be finite, ≥ 0 and of shape {H.shape}"
+            )
+        # Only |H| matters for whiteness (a per-bin phase is a rotation of the pair).
+        H = np.sqrt(spec_k)
     H_max = float(np.abs(H).max())
     keep = np.flatnonzero((np.abs(H) >= rel_floor * H_max) & (freqs < f_stop) & (H_max > 0))
     if keep.size == 0:
@@ -350,9 +370,13 @@ def make_whitener(
         H_max=H_max,
         N=np.zeros((M, 0)),
         excluded=np.zeros(n, dtype=bool),
+        spectral=spectrum is not None,
     )
-    U, s = _edge_correction(proto, settings, g, n, m, c)
-    wh = replace(proto, U=U, s=s)
+    if spectrum is not None:
+        wh = proto
+    else:
+        U, s = _edge_correction(proto, settings, g, n, m, c)
+        wh = replace(proto, U=U, s=s)
     if exclude is None:
         return wh
     mask = np.asarray(exclude)
@@ -516,6 +540,44 @@ def reversal_mask(
     dt = float((t[-1] - t[0]) / (t.shape[0] - 1))
     gain_v, _ = noise_gains(settings, 1.0 / dt)
     return np.abs(np.asarray(problem.v)) < kappa * float(sigma_x) * gain_v
+
+
+def noise_spectrum(
+    r: Float[np.ndarray, " n"], dt: float, *, min_bins: int = 8, n_bands: int = 24
+) -> Float[np.ndarray, " k"]:
+    """Smoothed noise power ``Ŝ_k`` [N²] of a residual r [n] on its rfft grid (k = 0 … n//2).
+
+    The periodogram ``|R_k|²/(n/2)`` is cut into log-spaced frequency bands of at least
+    ``min_bins`` bins; in each the median over ln 2 (the median of an exponential
+    variable, the distribution of one complex bin's power) estimates S at the band's
+    geometric centre, robust to the few bins a drive harmonic or a narrow structure
+    occupies; ``log Ŝ`` is interpolated linearly in ``log f`` between centres and held
+    flat beyond them (DC takes the first band's value). Broadband model error left in r
+    raises Ŝ where it lives: the tests built on it become less sensitive there, never
+    over-confident.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    n = r.shape[0]
+    power = np.abs(np.fft.rfft(r)) ** 2 / (n / 2.0)
+    f = np.fft.rfftfreq(n, dt)
+    k = np.arange(1, f.shape[0])
+    edges = np.unique(np.geomspace(1, f.shape[0], n_bands + 1).astype(int))
+    centres, levels = [], []
+    lo = 1
+    for hi in edges[1:]:
+        if hi - lo < min_bins and hi < f.shape[0]:
+            continue
+        sel = k[(k >= lo) & (k < hi)]
+        if sel.size:
+            centres.append(math.sqrt(f[sel[0]] * f[sel[-1]]))
+            levels.append(max(float(np.median(power[sel]) / math.log(2.0)), 1e-300))
+        lo = hi
+    if not levels:
+        return np.full(f.shape, max(float(np.mean(power)), 1e-300))
+    log_s = np.interp(
+        np.log(np.maximum(f, f[1] if f.shape[0] > 1 else 1.0)), np.log(centres), np.log(levels)
+    )
+    return np.exp(log_s)
 
 
 def robust_sigma(wh: Whitener, r_w: Float[np.ndarray, " M"]) -> float:
