@@ -125,3 +125,86 @@ def test_closed_loop_resimulation_tracks_and_open_loop_drifts(recs, cfg):
     assert closed.force > 3.0  # the symmetric model's misfit, not a numerical floor
     opened = simulation_error(recs["estimation"], cfg, p)
     assert opened.mode == "open-loop" and opened.position > 100 * closed.position
+
+
+# -- what the published symmetric model leaves out (issue part 3) --------------------------
+#: The authors' direction-asymmetric variant, eq. (12) (data README): value, σ.
+ASYM = {
+    "mass": (95.1540, 0.0827),
+    "Fv+": (166.7061, 1.2326),
+    "Fc+": (20.1440, 0.1088),
+    "Fv-": (240.4236, 1.2346),
+    "Fc-": (20.6277, 0.1091),
+}
+
+
+def _with_terms(cfg, *terms):
+    from dataclasses import replace
+
+    from fricjax.model.system import Model
+
+    spec = cfg.spec
+    for term in terms:
+        spec = spec.extended(term.parameters())
+    return replace(cfg, model=Model((*cfg.model.terms, *terms)), spec=spec)
+
+
+def test_the_catalogue_asymmetry_reproduces_the_authors_variant(recs, cfg, run):
+    """base + ``asymmetric_friction`` identified on DATA_EMPS (same decimated recipe) gives
+    the authors' Fv±, Fc± within 0.3 σ (the offset and dFc are one constant: Fc± take it),
+    and lowers the relative error on both files as the authors' model does."""
+    from fricjax.diagnose.catalogue import AsymmetricFriction
+
+    acfg = _with_terms(cfg, AsymmetricFriction())
+    problem = build_problem(recs["estimation"], acfg)
+    fit = identify(problem, IdentifySettings.from_tables(acfg.tables, source=acfg.source))
+    p = {"gain": GTAU, **named(fit)}
+    ours = {
+        "mass": p["mass"],
+        "Fv+": p["Fv"] + p["asym_dFv"],
+        "Fc+": p["Fc"] + p["asym_dFc"] + p["offset"],
+        "Fv-": p["Fv"] - p["asym_dFv"],
+        "Fc-": p["Fc"] - p["asym_dFc"] - p["offset"],
+    }
+    for k, (value, sigma) in ASYM.items():
+        assert abs(ours[k] - value) <= 0.3 * sigma, (k, ours[k])
+    sym = {"gain": GTAU, **named(run)}
+    for key, published in (("estimation", 3.11), ("validation", None)):
+        e_asym = equation_error(recs[key], acfg, p, decimate_by=10).rel_error
+        e_sym = equation_error(recs[key], cfg, sym, decimate_by=10).rel_error
+        assert e_asym < 0.92 * e_sym, key  # measured: 3.06 vs 4.04 %, 5.34 vs 5.95 %
+        if published is not None:
+            assert abs(100 * e_asym - published) < 0.1
+
+
+@pytest.mark.slow
+def test_blind_diagnosis_names_asymmetry_and_beats_the_published_model(recs, cfg, tmp_path):
+    """``fricjax diagnose`` on DATA_EMPS, blind (whole catalogue, configs/emps.toml), with
+    the pulse file held out: it names the direction asymmetry and the presliding memory at
+    the reversals, and its model predicts the *validation* file better than the published
+    symmetric one (decimated IDIM relative error, EMS at 1 kHz). ~3-7 min."""
+    from fricjax.api import diagnose_recording
+    from fricjax.data.recording import write_recording
+
+    paths = {k: write_recording(r, tmp_path / f"{k}.h5") for k, r in recs.items()}
+    diag, written = diagnose_recording(
+        paths["estimation"],
+        ROOT / "configs" / "emps.toml",
+        out=tmp_path / "diag",
+        validation=paths["validation"],
+    )
+    effects = [f["effect"] for f in diag.findings]
+    assert "asymmetric_friction" in effects and "presliding_hysteresis" in effects
+    assert written["json"].is_file() and written["report"].is_file()
+    sel = diag.selection
+    fcfg = _with_terms(cfg, *sel.model.terms[len(cfg.model.terms) :])
+    after = fcfg.spec.as_dict(sel.theta) if fcfg.spec.names == sel.spec.names else None
+    assert after is not None
+    pub = {"gain": GTAU, **PUBLISHED}
+    val = recs["validation"]
+    e_pub = equation_error(val, cfg, pub, decimate_by=10)
+    e_new = equation_error(val, fcfg, after, decimate_by=10)
+    assert e_new.rel_error < 0.97 * e_pub.rel_error  # measured 5.58 vs 5.96 %
+    assert equation_error(val, fcfg, after).ems < equation_error(val, cfg, pub).ems
+    assert diag.heldout["on"] == "second recording"
+    assert diag.heldout["ems_after"] < diag.heldout["ems_before"]
