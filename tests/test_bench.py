@@ -27,9 +27,22 @@ from fricjax.bench.convergence import (
 from fricjax.bench.machine import describe, peak_flops, simd_width
 from fricjax.bench.peers import Tracker, _Stop
 from fricjax.bench.seed_cost import SeedCost
-from fricjax.bench.throughput import hand_flops
+from fricjax.bench.throughput import (
+    VARIANTS,
+    ThroughputResult,
+    ThroughputSettings,
+    barrier_flops,
+    delta_fixed_at_one,
+    grid_shape,
+    hand_flops,
+    numpy_point_rate,
+    peak_ratios,
+    throughput_markdown,
+    throughput_table,
+)
 from fricjax.data.twin import read_truth
 from fricjax.errors import FricjaxError
+from fricjax.problem import Cost, GridCost
 from fricjax.search import dsaa
 from fricjax.search.annealing import AnnealSettings
 
@@ -190,16 +203,79 @@ def test_tracker_logs_improvements_and_stops_at_the_target():
     assert run.note == "reached the provisional target"
 
 
-def test_hand_flop_count_agrees_with_xla_cost_analysis(twin_problem):
-    sc = SeedCost.from_problem(twin_problem)
-    x = jnp.asarray(np.tile(twin_problem.spec.init, (4, 1)))
-    compiled = jax.jit(jax.vmap(twin_problem.cost_fn)).lower(x).compile()
-    analysis = compiled.cost_analysis()
+def _xla_counts(fn, d: int, theta0) -> tuple[float, float]:
+    x = jnp.asarray(np.tile(theta0, (4, 1)))
+    analysis = jax.jit(jax.vmap(fn)).lower(x).compile().cost_analysis()
     analysis = analysis[0] if isinstance(analysis, list | tuple) else analysis
-    flops, transcendentals = hand_flops(twin_problem.n, sc.harmonics)
-    assert flops == (15 + 8 * 10) * twin_problem.n
-    assert analysis["flops"] / 4 == pytest.approx(flops, rel=0.1)
-    assert analysis["transcendentals"] / 4 == pytest.approx(transcendentals, rel=0.1)
+    return analysis["flops"] / 4, analysis["transcendentals"] / 4
+
+
+def test_hand_flop_count_agrees_with_xla_cost_analysis(twin_problem):
+    pb = twin_problem
+    sc = SeedCost.from_problem(pb)
+    grid = grid_shape(pb)
+    assert grid == (15, 16)
+    # fricjax's cost: angle addition on the [J, R] grid layout
+    assert isinstance(pb.cost_fn, GridCost)
+    # configs/paper.toml fixes δ = 1: the Stribeck power is skipped
+    assert delta_fixed_at_one(pb)
+    flops, transcendentals = hand_flops(pb.n, sc.harmonics, grid, delta_one=True)
+    assert flops == (18 + 8 * 10) * pb.n + 15 + 16
+    assert transcendentals == pb.n + 2 * (15 + 16)
+    xla_f, xla_t = _xla_counts(pb.cost_fn, pb.spec.n_free, pb.spec.init)
+    assert xla_f == pytest.approx(flops + barrier_flops(grid, in_order=False), rel=0.1)
+    assert xla_t == pytest.approx(transcendentals, rel=0.1)
+    # samples in order (what a stateful model gets): one more identity product per sample
+    xla_f, xla_t = _xla_counts(Cost(pb.residual_fn), pb.spec.n_free, pb.spec.init)
+    assert xla_f == pytest.approx(flops + barrier_flops(grid, in_order=True), rel=0.1)
+    assert xla_t == pytest.approx(transcendentals, rel=0.1)
+    # the hand transcription keeps one sine and one cosine per sample
+    plain_f, plain_t = hand_flops(pb.n, sc.harmonics)
+    assert plain_f == (15 + 8 * 10) * pb.n and plain_t == 5 * pb.n
+    xla_f, xla_t = _xla_counts(sc.jax_fn(jnp.float64), pb.spec.n_free, pb.spec.init)
+    assert xla_f == pytest.approx(plain_f, rel=0.1)
+    assert xla_t == pytest.approx(plain_t, rel=0.1)
+
+
+def test_numpy_one_point_per_call_rate_and_the_report_ratios(twin_problem):
+    sc = SeedCost.from_problem(twin_problem)
+    lo, hi = twin_problem.spec.lower, twin_problem.spec.upper
+    points = lo + np.random.default_rng(4).random((5, lo.size)) * (hi - lo)
+    assert 0 < numpy_point_rate(sc, points, repeats=1) < math.inf
+    ts = ThroughputSettings(chains=(1, 64), subprocess=False, point_calls=200)
+    rate = {
+        "fricjax f64": {1: 2.0e4, 64: 3.0e5},
+        "jax f64": {1: 1.0e4, 64: 2.0e5},
+        "jax f32": {1: 2.0e4, 64: 4.0e5},
+        "numpy f64": {1: 5.0e3, 64: 6.0e4},
+    }
+    result = ThroughputResult(
+        settings=ts,
+        n_samples=232,
+        d=26,
+        harmonics=10,
+        rate=rate,
+        compile={v: {1: 0.5, 64: 0.6} for v in VARIANTS if v != "numpy f64"},
+        f32_error=1e-6,
+        flops={},
+        hand=hand_flops(232, 10, (15, 16)),
+        maxrss_mib=100.0,
+        device_memory=None,
+        numpy_point=1.0e4,
+        grid=(15, 16),
+        barrier=barrier_flops((15, 16), in_order=False),
+        layout="time grid J × R = 15 × 16",
+    )
+    assert peak_ratios(result) == (3.0e5, 30.0, 5.0)
+    md = throughput_markdown(result, describe())
+    assert "| numpy f64, 1 θ/call |" in md
+    assert "| 64 | 300000 | 200000 | 400000 | 60000 | 10000 | 5 | 2 |" in md
+    assert "is 30× the numpy cost called one θ per call (10000/s)" in md
+    assert "5× the vectorised numpy cost at its peak (60000/s)" in md
+    text = throughput_table(result)
+    assert text.splitlines()[-1] == (
+        "fricjax f64 peak 300000/s = 30x numpy one θ per call, 5x vectorised numpy (peak)"
+    )
 
 
 def test_cli_rejects_an_unknown_method_in_one_line():

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH
+from fricjax.model.friction import StribeckFriction
 from fricjax.model.simulate import simulate
-from fricjax.model.system import cost
+from fricjax.model.system import Model, cost
 from fricjax.model.term import Signals
 from fricjax.params import ParamSpec
-from fricjax.problem import Problem
+from fricjax.problem import Cost, EquationError, GridCost, Problem
 
 
 def _exact_problem(spec: ParamSpec) -> Problem:
@@ -85,3 +90,106 @@ def test_cost_is_differentiable(twin_problem: Problem) -> None:
     d = jnp.asarray(np.random.default_rng(2).standard_normal(theta.size)) * 1e-5
     fd = (twin_problem.cost(theta + d) - twin_problem.cost(theta - d)) / 2
     assert abs(float(g @ d) - fd) < 1e-5 * abs(fd) + 1e-5  # + roundoff of a 1e6 N² cost
+
+
+# -- the time grid (angle addition in the harmonic drive, GridCost) ------------------------
+
+
+class _StatefulStribeck(StribeckFriction):
+    """The seed friction declared stateful: the problem must keep the samples in order."""
+
+    stateful = True
+
+
+def _plain_cost(pb: Problem) -> Cost:
+    """The cost of git HEAD before the grid: sin/cos per sample, samples in order."""
+    res = pb.residual_fn
+    return Cost(
+        EquationError(
+            pb.model, res.spec, res.t, res.x, res.v, res.u, res.a, kernel=res.kernel, q=res.q
+        )
+    )
+
+
+def _box(pb: Problem, c: int, seed: int) -> jnp.ndarray:
+    lo, hi = pb.spec.lower, pb.spec.upper
+    return jnp.asarray(lo + np.random.default_rng(seed).random((c, lo.size)) * (hi - lo))
+
+
+@pytest.fixture(scope="module")
+def box256(twin_problem: Problem) -> jnp.ndarray:
+    return _box(twin_problem, 256, 11)
+
+
+def test_twin_cost_on_the_grid_equals_the_plain_cost(twin_problem: Problem, box256) -> None:
+    pb = twin_problem
+    assert pb.grid is not None and pb.residual_fn.grid is not None
+    fn = pb.cost_fn
+    assert isinstance(fn, GridCost)
+    j, r = pb.grid.outer.shape[0], pb.grid.inner.shape[0]
+    assert (j, r) == (15, 16) and fn.t.shape == (j, r)
+    assert int(np.sum(np.asarray(fn.keep))) == pb.n
+    plain = _plain_cost(pb)
+    old = np.asarray(jax.jit(jax.vmap(plain))(box256))
+    new = np.asarray(jax.jit(jax.vmap(fn))(box256))
+    assert np.max(np.abs(new / old - 1.0)) <= 1e-12  # measured 1.6e-15
+    # the residual in sample order (grid path of the drive, for the refiner)
+    r_new = np.asarray(jax.jit(jax.vmap(pb.residual_fn))(box256))
+    r_old = np.asarray(jax.jit(jax.vmap(plain.residual))(box256))
+    assert np.max(np.abs(r_new - r_old)) <= 1e-12 * np.max(np.abs(r_old))
+    # gradients (the refiner and the search's derivative checks use them)
+    theta = jnp.asarray(pb.theta(PAPER_TRUTH))
+    g_new, g_old = jax.grad(fn)(theta), jax.grad(plain)(theta)
+    np.testing.assert_allclose(np.asarray(g_new), np.asarray(g_old), rtol=1e-9, atol=1e-9)
+
+
+def test_trimmed_and_decimated_problems_keep_the_grid(twin_problem: Problem) -> None:
+    pb0 = twin_problem
+    # trimmed further (a uniform slice stays uniform; 224 samples: a partly filled grid)
+    cut = slice(5, -3)
+    trimmed = replace(pb0, **{k: getattr(pb0, k)[cut] for k in ("t", "x", "v", "a", "u")})
+    # a 1 s record with its residual decimated by 2 (the filter needs > 411 samples)
+    t = 0.013 + np.arange(1000) / 1000.0
+    rng = np.random.default_rng(14)
+    v = 0.3 * np.sin(31.4 * t) + 0.01 * rng.standard_normal(t.size)
+    decimated = Problem(
+        pb0.model,
+        pb0.spec,
+        t,
+        np.cumsum(v) / 1000.0,
+        v,
+        np.gradient(v, t),
+        np.zeros_like(t),
+        preprocess=dataclasses.replace(pb0.preprocess, decimate=2),
+    )
+    x = _box(pb0, 64, 12)
+    for pb, kind in ((trimmed, GridCost), (decimated, Cost)):
+        assert pb.grid is not None and pb.residual_fn.grid is not None
+        assert isinstance(pb.cost_fn, kind)
+        new = np.asarray(jax.jit(jax.vmap(pb.cost_fn))(x))
+        old = np.asarray(jax.jit(jax.vmap(_plain_cost(pb)))(x))
+        assert np.max(np.abs(new / old - 1.0)) <= 1e-12
+    assert decimated.residual_fn(x[0]).shape == (decimated.n_residual,) == (500,)
+
+
+def test_a_stateful_term_keeps_the_samples_in_order(twin_problem: Problem) -> None:
+    pb = replace(twin_problem, model=Model((twin_problem.model.terms[0], _StatefulStribeck())))
+    assert pb.grid is not None
+    assert isinstance(pb.cost_fn, Cost) and pb.cost_fn.residual.grid is not None
+    x = _box(pb, 16, 15)
+    new = np.asarray(jax.jit(jax.vmap(pb.cost_fn))(x))
+    old = np.asarray(jax.jit(jax.vmap(_plain_cost(pb)))(x))
+    assert np.max(np.abs(new / old - 1.0)) <= 1e-12
+
+
+def test_non_uniform_times_fall_back_to_the_plain_cost(twin_problem: Problem) -> None:
+    pb0 = twin_problem
+    keep = np.ones(pb0.n, bool)
+    keep[[40, 41, 150]] = False  # samples dropped: t is no longer a grid
+    pb = replace(pb0, **{k: getattr(pb0, k)[keep] for k in ("t", "x", "v", "a", "u")})
+    assert pb.grid is None and pb.residual_fn.grid is None
+    assert isinstance(pb.cost_fn, Cost)
+    x = _box(pb0, 8, 13)
+    np.testing.assert_array_equal(
+        np.asarray(jax.vmap(pb.cost_fn)(x)), np.asarray(jax.vmap(_plain_cost(pb))(x))
+    )

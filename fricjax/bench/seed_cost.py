@@ -10,9 +10,11 @@ Per sample k (seed eq. 4, 1, 5, 11)::
     E(θ) = Σ_k r_k²                                                               [N²]
 
 with sin/cos(iωt) by the Chebyshev recurrence ``s_{i+1} = 2cos(ωt)·s_i − s_{i−1}`` (one sine
-and one cosine per sample, as in :class:`fricjax.model.drive.HarmonicDrive`). ``θ`` is the
-problem's free vector (``[d]`` or a batch ``[P, d]``); fixed parameters (δ, mass) take their
-spec values.
+and one cosine per sample, as :class:`fricjax.model.drive.HarmonicDrive` does without a time
+grid; fricjax's own cost gets them by angle addition on the recording's uniform grid,
+:func:`fricjax.model.drive.phasor`, so this transcription is the per-sample baseline).
+``θ`` is the problem's free vector (``[d]`` or a batch ``[P, d]``); fixed parameters (δ,
+mass) take their spec values.
 """
 
 from __future__ import annotations

@@ -10,7 +10,10 @@ uniformly in the box:
   jitted and vmapped, data and θ cast to the dtype (``jax_enable_x64`` stays on). fricjax's
   own model cannot simply be cast: its drive term starts from float64 zeros, which promotes
   a float32 θ back to float64;
-* ``numpy f64``: the same transcription in numpy, vectorised over the batch.
+* ``numpy f64``: the same transcription in numpy, vectorised over the batch;
+* ``numpy f64, one θ per call``: the same numpy cost called on one point at a time from a
+  Python loop (``point_calls`` points), the way scipy's optimisers call a cost; a single
+  rate, independent of C.
 
 Device and flag experiments run in subprocesses (``XLA_FLAGS`` is read once, when JAX
 starts): ``--xla_force_host_platform_device_count=2`` with the batch sharded over a 1-D mesh
@@ -21,13 +24,25 @@ FLOPs of one evaluation come from XLA's ``cost_analysis()`` of the compiled batc
 a hand count per sample n (N harmonics): ``ωt`` 1, ``2cos`` 1, per harmonic 4 (two products
 and two sums of eq. 4) + 4 (the two Chebyshev recurrences), Stribeck 8 (|v|/vs, δ·log, the
 level, sgn·level, Fv·v, sum), residual 3, square and sum 2, i.e. ``(15 + 8N)·n`` FLOPs plus
-``5·n`` transcendentals (sin, cos, log, exp, exp). The fraction of peak divides the
-measured FLOP rate by :attr:`fricjax.bench.machine.Machine.peak_flops`.
+``5·n`` transcendentals (sin, cos, log, exp, exp). On a uniform time grid ``[J, R]``
+(:class:`fricjax.model.term.TimeGrid`, what fricjax's own cost uses) ``cos/sin ωt`` come
+by angle addition from ``J + R`` pairs: ``ωt`` 1 becomes the complex product 6, i.e.
+``(20 + 8N)·n + (J + R)`` FLOPs and ``3·n + 2·(J + R)`` transcendentals; with δ fixed
+at 1 (the paper config: seed eq. 2) the Stribeck power ``exp(δ·log r)`` is skipped
+(:func:`fricjax.model.friction.stribeck_curve`), ``(18 + 8N)·n + (J + R)`` FLOPs and
+``n + 2·(J + R)`` transcendentals (the ``[J, R]`` layout of
+:class:`fricjax.problem.GridCost` also evaluates its ``J·R − n`` padding samples, masked
+out). XLA's count also holds the identity products that keep the
+J + R sines (and, samples in order, the phasors) out of the per-sample loop
+(:func:`fricjax.model.drive.phasor`), copies rather than arithmetic
+(:func:`barrier_flops`). The fraction of peak divides the measured FLOP rate (hand count)
+by :attr:`fricjax.bench.machine.Machine.peak_flops`.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import resource
 import subprocess
@@ -46,11 +61,13 @@ from fricjax.bench.machine import Machine, describe
 from fricjax.bench.seed_cost import SeedCost
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import write_text_atomic
-from fricjax.problem import Problem
+from fricjax.problem import GridCost, Problem
 from fricjax.report.tables import fmt, format_table
 
 CHAIN_COUNTS: tuple[int, ...] = (1, 4, 16, 64, 256, 1024, 4096)
 VARIANTS: tuple[str, ...] = ("fricjax f64", "jax f64", "jax f32", "numpy f64")
+#: The numpy cost called on one θ at a time (one rate, whatever the batch size).
+POINT_VARIANT = "numpy f64, 1 θ/call"
 _YNN = "--xla_cpu_experimental_ynn_fusion_type="
 
 
@@ -58,13 +75,14 @@ _YNN = "--xla_cpu_experimental_ynn_fusion_type="
 class ThroughputSettings:
     """``chains``: batch sizes; ``min_time`` [s]: timing per measurement (fastest of
     ``repeats`` slots); ``sub_chains``: batch sizes of the subprocess experiments; ``subprocess``:
-    run them at all."""
+    run them at all; ``point_calls``: points of the one-θ-per-call numpy loop."""
 
     chains: tuple[int, ...] = CHAIN_COUNTS
     min_time: float = 2.0
     repeats: int = 10
     sub_chains: tuple[int, ...] = (64, 1024, 4096)
     subprocess: bool = True
+    point_calls: int = 200
 
     def validate(self) -> ThroughputSettings:
         src = "bench throughput"
@@ -72,6 +90,8 @@ class ThroughputSettings:
             raise FricjaxError(f"{where(src, 'chains')}: need batch sizes ≥ 1")
         if self.repeats < 1 or not self.min_time > 0:
             raise FricjaxError(f"{where(src, 'repeats')}: need repeats ≥ 1 and min_time > 0")
+        if self.point_calls < 1:
+            raise FricjaxError(f"{where(src, 'point_calls')}: need at least 1 call")
         return self
 
 
@@ -94,9 +114,75 @@ def per_call_seconds(fn: Callable[[Any], Any], x: Any, *, min_time: float, repea
     return float(np.min(samples))
 
 
-def hand_flops(n_samples: int, harmonics: int) -> tuple[int, int]:
-    """(FLOPs, transcendentals) of one evaluation by the count of the module docstring."""
-    return (15 + 8 * harmonics) * n_samples, 5 * n_samples
+def hand_flops(
+    n_samples: int,
+    harmonics: int,
+    grid: tuple[int, int] | None = None,
+    delta_one: bool = False,
+) -> tuple[int, int]:
+    """(FLOPs, transcendentals) of one evaluation by the count of the module docstring;
+    ``grid`` = (J, R) of the time grid when the drive uses angle addition (None: plain);
+    ``delta_one``: δ fixed at 1, the Stribeck power skipped (grid path only: the hand
+    transcription always evaluates it)."""
+    if grid is None:
+        return (15 + 8 * harmonics) * n_samples, 5 * n_samples
+    j, r = grid
+    if delta_one:
+        return (18 + 8 * harmonics) * n_samples + j + r, n_samples + 2 * (j + r)
+    return (20 + 8 * harmonics) * n_samples + j + r, 3 * n_samples + 2 * (j + r)
+
+
+def delta_fixed_at_one(problem: Problem) -> bool:
+    """Whether the Stribeck exponent δ is a fixed 1 (then the cost skips its power)."""
+    spec = problem.spec
+    return "delta" in spec and not spec["delta"].free and float(spec["delta"].init) == 1.0
+
+
+def barrier_flops(grid: tuple[int, int] | None, in_order: bool) -> int:
+    """FLOPs XLA counts for the identity products of :func:`fricjax.model.drive.phasor`,
+    per evaluation: ``[J + R, 2] @ I₂`` always, and ``[2J, R] @ I_R`` when the samples stay
+    in order (``in_order``: a :class:`fricjax.problem.Cost`, not a ``GridCost``); 0 without
+    a grid."""
+    if grid is None:
+        return 0
+    j, r = grid
+    return 8 * (j + r) + (4 * r * j * r if in_order else 0)
+
+
+def grid_shape(problem: Problem) -> tuple[int, int] | None:
+    """(J, R) of the problem's time grid, or None when its cost evaluates sin/cos per sample."""
+    grid = problem.grid
+    return None if grid is None else (int(grid.outer.shape[0]), int(grid.inner.shape[0]))
+
+
+def describe_layout(problem: Problem) -> str:
+    """One phrase: how ``problem.cost_fn`` evaluates the drive's sin/cos."""
+    grid = grid_shape(problem)
+    if grid is None:
+        return "sin/cos per sample (t is not a uniform grid)"
+    where = (
+        "samples in the [J, R] layout (`GridCost`)"
+        if isinstance(problem.cost_fn, GridCost)
+        else "samples in order"
+    )
+    return (
+        f"time grid J × R = {grid[0]} × {grid[1]}: sin/cos by angle addition from "
+        f"{grid[0] + grid[1]} pairs, {where}"
+    )
+
+
+def numpy_point_rate(sc: SeedCost, points: np.ndarray, *, repeats: int) -> float:
+    """Evaluations/s of the numpy cost called on one θ at a time from a Python loop over
+    ``points [P, d]`` (how scipy's optimisers call a cost): the fastest of ``repeats`` loops,
+    after one warm call."""
+    sc.numpy(points[0])
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for theta in points:
+            sc.numpy(theta)
+        best = min(best, time.perf_counter() - start)
+    return points.shape[0] / best
 
 
 def _batch(problem: Problem, c: int, seed: int = 0) -> np.ndarray:
@@ -122,10 +208,13 @@ def _cost_analysis(compiled: Any) -> dict[str, float]:
 
 @dataclass
 class ThroughputResult:
-    """Measured numbers: ``rate[variant][C]`` evaluations/s, ``compile[variant][C]`` [s],
-    ``f32_error`` (largest relative error of the float32 cost), ``flops`` (XLA's
-    cost analysis per evaluation), ``hand`` (hand count per evaluation), ``maxrss_mib``,
-    ``device_memory`` (JAX's memory stats or None), ``sub`` (subprocess experiments)."""
+    """Measured numbers: ``rate[variant][C]`` evaluations/s, ``numpy_point`` evaluations/s
+    of the numpy cost one θ per call, ``compile[variant][C]`` [s], ``f32_error`` (largest
+    relative error of the float32 cost), ``flops`` (XLA's cost analysis per evaluation),
+    ``hand`` (hand count per evaluation), ``grid`` ((J, R) of fricjax's time grid or None),
+    ``barrier`` (XLA FLOPs of its identity products), ``layout`` (how fricjax's cost
+    evaluates sin/cos), ``maxrss_mib``, ``device_memory`` (JAX's memory stats or None),
+    ``sub`` (subprocess experiments)."""
 
     settings: ThroughputSettings
     n_samples: int
@@ -138,6 +227,10 @@ class ThroughputResult:
     hand: tuple[int, int]
     maxrss_mib: float
     device_memory: dict[str, Any] | None
+    numpy_point: float = math.nan
+    grid: tuple[int, int] | None = None
+    barrier: int = 0
+    layout: str = ""
     sub: dict[str, dict[int, float]] = field(default_factory=dict)
     sub_notes: list[str] = field(default_factory=list)
 
@@ -178,6 +271,10 @@ def run_throughput(
             on_line(
                 f"C={c:5d}: " + ", ".join(f"{name} {rate[name][c]:9.0f}/s" for name in VARIANTS)
             )
+    points = _batch(problem, ts.point_calls, seed=2)
+    numpy_point = numpy_point_rate(sc, points, repeats=max(1, min(ts.repeats, 5)))
+    if on_line is not None:
+        on_line(f"numpy f64, one θ per call ({ts.point_calls} calls): {numpy_point:9.0f}/s")
     x = _batch(problem, 256, seed=1)
     ref = np.asarray(fns["fricjax f64"](jnp.asarray(x)))
     f32 = np.asarray(fns["jax f32"](jnp.asarray(x, dtype=jnp.float32)), dtype=np.float64)
@@ -195,9 +292,13 @@ def run_throughput(
         compile=comp,
         f32_error=f32_error,
         flops=flops,
-        hand=hand_flops(problem.n, sc.harmonics),
+        hand=hand_flops(problem.n, sc.harmonics, grid_shape(problem), delta_fixed_at_one(problem)),
         maxrss_mib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         device_memory=dict(stats) if stats else None,
+        numpy_point=numpy_point,
+        grid=grid_shape(problem),
+        barrier=barrier_flops(grid_shape(problem), not isinstance(problem.cost_fn, GridCost)),
+        layout=describe_layout(problem),
     )
     if ts.subprocess and recording is not None and config is not None:
         _subprocess_experiments(result, recording, config, on_line)
@@ -296,8 +397,17 @@ def worker() -> None:
 # ----------------------------------------------------------------------------------------
 
 
+def peak_ratios(result: ThroughputResult) -> tuple[float, float, float]:
+    """(fricjax f64 peak rate, its ratio to numpy one θ per call, its ratio to the
+    vectorised numpy peak rate) — peaks over the measured batch sizes."""
+    best = max(result.rate["fricjax f64"].values())
+    numpy_peak = max(result.rate["numpy f64"].values())
+    return best, best / result.numpy_point, best / numpy_peak
+
+
 def throughput_table(result: ThroughputResult) -> str:
-    """Plain-text table of evaluations/s and the ratios against numpy and float64."""
+    """Plain-text table of evaluations/s and the ratios against numpy and float64, then the
+    numpy one-θ-per-call rate and the peak ratios."""
     rows = []
     for c in result.settings.chains:
         r = {v: result.rate[v][c] for v in VARIANTS}
@@ -305,11 +415,19 @@ def throughput_table(result: ThroughputResult) -> str:
             (
                 str(c),
                 *(f"{r[v]:.0f}" for v in VARIANTS),
+                f"{result.numpy_point:.0f}",
                 fmt(r["fricjax f64"] / r["numpy f64"], 3),
                 fmt(r["jax f32"] / r["jax f64"], 3),
             )
         )
-    return format_table(rows, ("chains", *VARIANTS, "fricjax/numpy", "f32/f64 (jax)"))
+    best, per_point, vectorised = peak_ratios(result)
+    table = format_table(
+        rows, ("chains", *VARIANTS, POINT_VARIANT, "fricjax/numpy", "f32/f64 (jax)")
+    )
+    return (
+        f"{table}\nfricjax f64 peak {best:.0f}/s = {fmt(per_point, 3)}x numpy one θ per call, "
+        f"{fmt(vectorised, 3)}x vectorised numpy (peak)"
+    )
 
 
 def throughput_markdown(result: ThroughputResult, machine: Machine) -> str:
@@ -335,22 +453,35 @@ def throughput_markdown(result: ThroughputResult, machine: Machine) -> str:
         "",
         "## Evaluations per second against the number of chains",
         "",
-        "| chains | " + " | ".join(VARIANTS) + " | fricjax / numpy | f32 / f64 (jax) |",
-        "|---" * (len(VARIANTS) + 3) + "|",
+        "| chains | "
+        + " | ".join(VARIANTS)
+        + f" | {POINT_VARIANT} | fricjax / numpy | f32 / f64 (jax) |",
+        "|---" * (len(VARIANTS) + 4) + "|",
     ]
     for c in ts.chains:
         r = {v: result.rate[v][c] for v in VARIANTS}
         lines.append(
             f"| {c} | "
             + " | ".join(f"{r[v]:.0f}" for v in VARIANTS)
+            + f" | {result.numpy_point:.0f}"
             + f" | {fmt(r['fricjax f64'] / r['numpy f64'], 3)}"
             + f" | {fmt(r['jax f32'] / r['jax f64'], 3)} |"
         )
+    _, per_point, vectorised = peak_ratios(result)
+    numpy_peak = max(result.rate["numpy f64"].values())
+    grid = f"fricjax's cost: {result.layout}" if result.layout else "fricjax's cost"
     lines += [
         "",
-        "`fricjax f64` = `jit(vmap(problem.cost_fn))`; `jax f64/f32` = the hand "
-        "transcription (`fricjax.bench.seed_cost`) at that dtype; `numpy f64` = the same "
-        "transcription in numpy. float32 accuracy: largest relative error of the float32 "
+        f"**fricjax f64 at its peak ({best:.0f}/s, C = {best_c}) is {fmt(per_point, 3)}× the "
+        f"numpy cost called one θ per call ({result.numpy_point:.0f}/s) and "
+        f"{fmt(vectorised, 3)}× the vectorised numpy cost at its peak ({numpy_peak:.0f}/s).**",
+        "",
+        "`fricjax f64` = `jit(vmap(problem.cost_fn))`; " + grid + "; `jax f64/f32` = the "
+        "hand transcription (`fricjax.bench.seed_cost`) at that dtype; `numpy f64` = the same "
+        "transcription in numpy, vectorised over the batch; "
+        f"`{POINT_VARIANT}` = that numpy cost called on one θ at a time from a Python loop "
+        f"over {ts.point_calls} points (how scipy's optimisers call a cost; the same for "
+        "every C). float32 accuracy: largest relative error of the float32 "
         f"cost at 256 random points {result.f32_error:.2g}: cost differences below that "
         "fraction are invisible in float32 (annealing compares costs of nearby points, LM "
         "their derivatives), which is why fricjax runs in float64.",
@@ -417,9 +548,15 @@ def throughput_markdown(result: ThroughputResult, machine: Machine) -> str:
             if xla
             else "not available"
         ),
-        f"- hand count per evaluation: (15 + 8·{result.harmonics})·{result.n_samples} = "
+        f"- hand count per evaluation: {_hand_formula(result)} = "
         f"{hand_f} FLOPs + {hand_t} transcendentals (module docstring of "
-        "`fricjax.bench.throughput`)",
+        "`fricjax.bench.throughput`)"
+        + (
+            f"; XLA's count adds {result.barrier} FLOPs of identity products "
+            "(copies that keep the grid's sines out of the per-sample loop)"
+            if result.grid
+            else ""
+        ),
         f"- best measured rate: {best:.0f} evaluations/s at C = {best_c} → "
         f"{best * hand_f / 1e9:.2f} GFLOP/s by the hand count"
         + (
@@ -435,8 +572,9 @@ def throughput_markdown(result: ThroughputResult, machine: Machine) -> str:
         ),
         "",
         f"The FMA units are not what limits the cost: one evaluation is a chain of "
-        f"~{(15 + 8 * result.harmonics)} elementwise operations and 5 transcendentals per "
-        f"sample over {result.n_samples} samples, then a sum. The rate peaks at C = {best_c}; "
+        f"~{round(hand_f / result.n_samples)} elementwise operations and "
+        f"{round(hand_t / result.n_samples)} transcendentals per sample over "
+        f"{result.n_samples} samples, then a sum. The rate peaks at C = {best_c}; "
         f"at C = {max(ts.chains)} it is {fmt(result.rate['fricjax f64'][max(ts.chains)] / best, 3)}"
         "× the peak rate, each intermediate [C, n] array being "
         f"{max(ts.chains) * result.n_samples * 8 / 2**20:.1f} MiB (beyond the per-core "
@@ -444,6 +582,14 @@ def throughput_markdown(result: ThroughputResult, machine: Machine) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _hand_formula(result: ThroughputResult) -> str:
+    n, h = result.n_samples, result.harmonics
+    if result.grid is None:
+        return f"(15 + 8·{h})·{n}"
+    j, r = result.grid
+    return f"(20 + 8·{h})·{n} + ({j} + {r})"
 
 
 def throughput_benchmark(

@@ -26,9 +26,13 @@ def stribeck_curve(
     """Stribeck level ``g(v) = Fc + (Fs − Fc)·exp(−(|v|/vs)^δ)`` [N] (seed eq. 1).
 
     ``(|v|/vs)^δ`` is evaluated through ``exp(δ·log(...))`` with the zero-speed branch kept
-    out of the log, so the gradient stays finite at ``v = 0`` for every δ > 0.
+    out of the log, so the gradient stays finite at ``v = 0`` for every δ > 0. A fixed
+    δ = 1 (Tustin, seed eq. 2) arrives as a float, not a traced array
+    (:func:`fricjax.problem.named_static`), and skips the log/exp pair.
     """
     r = jnp.abs(v) / vs
+    if isinstance(delta, float) and delta == 1.0:
+        return Fc + (Fs - Fc) * jnp.exp(-r)
     safe = jnp.where(r > 0, r, 1.0)
     power = jnp.where(r > 0, jnp.exp(delta * jnp.log(safe)), 0.0)
     return Fc + (Fs - Fc) * jnp.exp(-power)

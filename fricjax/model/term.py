@@ -33,10 +33,12 @@ model it is part of is then not separable.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar, Literal, NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.errors import FricjaxError
@@ -47,17 +49,133 @@ from fricjax.params import Named, Param
 Groups = tuple[tuple[str, ...], ...]
 
 
+class TimeGrid(NamedTuple):
+    """A uniform time base ``t_k = t_0 + k·Δt`` (k = 0..n−1) split as
+
+        t_k = outer[j] + inner[r],     k = j·R + r,   0 ≤ r < R,   j = 0..J−1     [s]
+
+    with ``outer [J] = t_{jR}`` (the recorded times) and ``inner [R] = r·Δt``; ``J·R ≥ n``
+    (the last row may run past the recording: its extra entries are dropped). A term that
+    needs a periodic function of ``t`` then evaluates it at the ``J + R`` times (31 for the
+    paper twin's 232 samples) and combines them (angle addition,
+    :func:`fricjax.model.drive.phasor`) instead of at ``n``. Built by :func:`time_grid`;
+    data leaves, so it traces and vmaps with the signals.
+    """
+
+    outer: Float[Array, " J"]
+    inner: Float[Array, " R"]
+
+    def arrange(self, x: Float[np.ndarray, " n"]) -> Float[np.ndarray, "J R"]:
+        """``x [n]`` in the grid layout ``[J, R]``, sample ``k`` at ``[k // R, k % R]``; the
+        ``J·R − n`` entries past the end repeat the last sample (finite values for the
+        caller to mask out)."""
+        j, r = self.outer.shape[-1], self.inner.shape[-1]
+        x = np.asarray(x)
+        return np.pad(x, (0, j * r - x.shape[0]), mode="edge").reshape(j, r)
+
+
 class Signals(NamedTuple):
     """Kinematic signals a term may depend on; arrays broadcast together.
 
-    Shapes are ``[n]`` for equation-error evaluation over a recording and ``[]`` inside the
-    simulator. Units: t [s], x [m], v [m/s], u [u_unit of the recording] (zeros if absent).
+    Shapes are ``[n]`` for equation-error evaluation over a recording, ``[J, R]`` for the
+    grid layout of :class:`fricjax.problem.GridCost` (models without a stateful term), ``[]``
+    inside the simulator. Units: t [s], x [m], v [m/s], u [u_unit of the recording] (zeros
+    if absent).
     """
 
     t: Float[Array, "..."]
     x: Float[Array, "..."]
     v: Float[Array, "..."]
     u: Float[Array, "..."]
+
+    @property
+    def grid(self) -> TimeGrid | None:
+        """The :class:`TimeGrid` of ``t`` when known (:class:`GridSignals`), else None."""
+        return None
+
+
+class GridSignals(Signals):
+    """:class:`Signals` of a recording on a uniform time base, with its :class:`TimeGrid`
+    ``grid`` as a hint that terms may use *instead of* ``t`` for periodic functions of time
+    (the harmonic drive does, :func:`fricjax.model.drive.phasor`).
+
+    Still the 4-tuple ``(t, x, v, u)`` for unpacking and, for JAX, a pytree of those four
+    arrays: anything that rebuilds the signals (``_replace``, ``jax.tree.map``, passing
+    them through a ``vmap``/``jit`` boundary) gets them without the hint, which is safe —
+    a term then evaluates ``t`` itself. Whoever builds one guarantees that ``grid``
+    describes ``t`` (:func:`time_grid` checks a time base; :func:`grid_layout` the shapes).
+    """
+
+    def __new__(
+        cls,
+        t: Float[Array, "..."],
+        x: Float[Array, "..."],
+        v: Float[Array, "..."],
+        u: Float[Array, "..."],
+        grid: TimeGrid | None = None,
+    ) -> GridSignals:
+        self = super().__new__(cls, t, x, v, u)
+        self.__dict__["_grid"] = grid
+        return self
+
+    @property
+    def grid(self) -> TimeGrid | None:
+        return self.__dict__.get("_grid")
+
+
+def grid_layout(grid: TimeGrid | None, t: Float[Array, "..."]) -> Literal["flat", "grid"] | None:
+    """How the signals of shape ``t.shape`` relate to ``grid`` (static shapes only):
+    ``"flat"``: ``t [n]`` with ``(J − 1)·R < n ≤ J·R`` (the recording's sample order);
+    ``"grid"``: ``t [J, R]``, sample ``k = j·R + r`` at ``[j, r]`` (padded past ``n``,
+    :meth:`TimeGrid.arrange`); ``None``: no grid, or it does not fit ``t``."""
+    if grid is None:
+        return None
+    j, r = grid.outer.shape[-1], grid.inner.shape[-1]
+    shape = tuple(jnp.shape(t))
+    if shape == (j, r):
+        return "grid"
+    if len(shape) == 1 and (j - 1) * r < shape[0] <= j * r:
+        return "flat"
+    return None
+
+
+#: Largest ``|outer[j] + inner[r] − t_k|`` that :func:`time_grid` accepts, in units of
+#: ``ε·max|t|`` (a few roundings of the largest time; anything beyond is not a uniform grid).
+GRID_TOLERANCE_ULPS = 4.0
+
+#: Largest inner length R of :func:`time_grid`'s default split (J + R sines, and R
+#: multiply-adds per sample to keep them out of XLA's per-sample loop,
+#: :func:`fricjax.model.drive.phasor`).
+MAX_INNER = 16
+
+
+def time_grid(t: Float[np.ndarray, " n"], inner: int | None = None) -> TimeGrid | None:
+    """The :class:`TimeGrid` of a uniform time base ``t [n]`` [s], or ``None`` if there is none.
+
+    ``inner`` = R (default ``min(⌈√n⌉, MAX_INNER)``: ``⌈√n⌉`` minimises the J + R
+    evaluations, the cap bounds the per-sample cost of using them). ``Δt`` is the
+    mean step ``(t_{n−1} − t_0)/(n − 1)``. Returns ``None`` unless ``t`` is 1-D, finite,
+    has at least 4 samples, and ``max_k |outer[j] + inner[r] − t_k| ≤ 4·ε·max|t|``
+    (ε = 2⁻⁵², :data:`GRID_TOLERANCE_ULPS`; measured ≤ 0.8·ε·max|t| on exact grids): a
+    recording whose steps are uniform only to its jitter tolerance (1e-6) keeps the plain
+    per-sample evaluation, so using the grid never moves a time by more than a few
+    roundings.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 1 or t.shape[0] < 4 or not np.isfinite(t).all():
+        return None
+    n = t.shape[0]
+    r = int(inner) if inner is not None else min(math.isqrt(n - 1) + 1, MAX_INNER)
+    if not 1 <= r <= n:
+        return None
+    dt = (t[-1] - t[0]) / (n - 1)
+    outer = t[::r]
+    offsets = np.arange(r) * dt
+    rebuilt = (outer[:, None] + offsets[None, :]).reshape(-1)[:n]
+    tol = GRID_TOLERANCE_ULPS * np.finfo(np.float64).eps * float(np.max(np.abs(t)))
+    if not np.max(np.abs(rebuilt - t)) <= tol:
+        return None
+    return TimeGrid(jnp.asarray(outer), jnp.asarray(offsets))
 
 
 class Basis(NamedTuple):
@@ -83,6 +201,12 @@ class Term:
 
     name: ClassVar[str] = ""
     role: ClassVar[Literal["drive", "friction"]] = "drive"
+    #: True for a term that needs the whole recording in order (a scan over the samples,
+    #: e.g. a bristle state): it works in the equation error over ``[n]`` signals, but
+    #: neither in the pointwise simulator nor in the ``[J, R]`` layout of
+    #: :class:`fricjax.problem.GridCost`. False (the default): the force at a sample
+    #: depends on that sample's signals (and ``p``) only.
+    stateful: ClassVar[bool] = False
 
     def parameters(self) -> tuple[Param, ...]:
         """The parameters this term reads, with units, default bounds and null values."""

@@ -68,10 +68,13 @@ where many amplitudes sit on their lower bounds). The search only needs the land
 near the basin right; the Levenberg–Marquardt polish of all parameters
 (:func:`fricjax.refine.refine` on :meth:`Separable.full_theta`) removes the difference.
 
-Cost (2 CPU cores): ~100-150 µs per evaluation against ~10 µs for the 26-D cost, but the
-2-D search needs ~750 evaluations instead of ~1e5; the solve compiles into every search
-program (XLA inlines it), ~2-3 s of compilation each, which the persistent compilation
-cache of the CLI (:func:`fricjax.api.enable_compilation_cache`) removes from later runs.
+Cost (2 CPU cores): ~100-150 µs per evaluation against ~5-8 µs for the 26-D cost at 32-64
+chains (which takes sin/cos by angle addition on the recording's time grid,
+:func:`fricjax.model.drive.phasor`; the projection passes plain signals, one sine/cosine
+pair per sample, a small part of its solve), but the 2-D search needs ~750 evaluations
+instead of ~1e5; the solve compiles into every search program (XLA inlines it), ~2-3 s of
+compilation each, which the persistent compilation cache of the CLI
+(:func:`fricjax.api.enable_compilation_cache`) removes from later runs.
 """
 
 from __future__ import annotations
