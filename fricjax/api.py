@@ -6,7 +6,7 @@ import json
 import os
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,6 +15,9 @@ from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.problem import Problem, build_problem
+
+if TYPE_CHECKING:
+    from fricjax.simulation import SimulationReport
 
 
 def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
@@ -110,6 +113,12 @@ def read_params(path: str | Path) -> dict[str, float]:
             from fricjax.io.results import read_results
 
             runs = read_results(path).runs
+            objectives = {str(r.attrs.get("objective", "")) for r in runs}
+            if len(objectives) > 1:
+                raise FricjaxError(
+                    f"{where(path, 'runs')}: mixes objectives ({'; '.join(sorted(objectives))}) "
+                    "whose costs are not comparable; write one objective per file"
+                )
             best = min(runs, key=lambda r: r.cost)
             return best.params
         if suffix == ".json":
@@ -335,3 +344,65 @@ def diagnose_recording(
         recording=str(recording),
     )
     return diag, write_diagnosis(diag, out)
+
+
+def simulate_recording(
+    recording: str | Path | Recording,
+    results: str | Path | None = None,
+    params: str | Path | dict[str, float] | None = None,
+    config: str | Path | Config | None = None,
+    controller: Any = None,
+    substeps: int = 4,
+    out: str | Path | None = None,
+    *,
+    mass: float | None = None,
+) -> SimulationReport:
+    """``fricjax simulate``: simulate identified parameters over a recording and compare
+    x, v, a and force (:mod:`fricjax.simulation`).
+
+    Args:
+        recording: the recording (path or :class:`Recording`); ``/truth`` is never read.
+        results: a results .h5 of ``identify`` (its best run; its stored config is used
+            unless ``config`` is given). Exactly one of ``results`` and ``params``.
+        params: TOML/JSON ``name = value`` file, or a mapping; needs ``config``.
+        config: model config (path or :class:`Config`).
+        controller: ``"emps"``, ``"kp=…,kv=…[,u_max=…]"`` or a
+            :class:`~fricjax.model.closed_loop.CascadePD`: closed loop (needs ``/r``).
+        substeps: RK4 sub-steps per sample interval.
+        out: folder for ``simulation.json``, ``simulation.h5``, ``simulation.png``
+            (written atomically); None writes nothing.
+
+    Returns:
+        :class:`fricjax.simulation.SimulationReport`.
+    """
+    from fricjax.model.closed_loop import CascadePD
+    from fricjax.simulation import simulate_against, write_simulation
+    from fricjax.validate import _config_from_results, parse_controller
+
+    if (results is None) == (params is None):
+        raise FricjaxError(
+            f"{where('simulate', '--results/--params')}: give exactly one of them "
+            f"({'neither' if results is None else 'both'} given)"
+        )
+    if results is not None:
+        results = Path(results)
+        if not results.is_file():
+            raise FricjaxError(f"{where(results)}: results file not found")
+        if results.suffix.lower() not in (".h5", ".hdf5"):
+            raise FricjaxError(f"{where(results)}: not a results .h5 (use --params for TOML/JSON)")
+        named, source = read_params(results), str(results)
+        if config is None:
+            config = _config_from_results(results)
+    elif isinstance(params, dict):
+        named, source = {k: float(v) for k, v in params.items()}, "params"
+    else:
+        named, source = read_params(params), str(params)
+    if config is None:
+        raise FricjaxError(f"{where(source)}: holds no config; give --config")
+    cfg = config if isinstance(config, Config) else load_config(config)
+    rec = recording if isinstance(recording, Recording) else read_recording(recording, mass=mass)
+    ctrl = controller if isinstance(controller, CascadePD) else parse_controller(controller)
+    report = simulate_against(rec, cfg, named, controller=ctrl, substeps=substeps, source=source)
+    if out is not None:
+        report = write_simulation(report, out)
+    return report

@@ -158,6 +158,13 @@ def identify(
             "(variable projection; default: separable in the config's search table)",
         ),
     ] = None,
+    objective: Annotated[
+        str | None,
+        typer.Option(
+            help="equation (seed eq. 11) | simulation (then output error with multiple "
+            "shooting from the equation-error estimate; default: [search].objective)"
+        ),
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="Results file (.h5)")] = None,
     mass: MassOpt = None,
     quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
@@ -178,6 +185,7 @@ def identify(
         "max_levels": max_levels,
         "refine": None if refine else False,
         "separable": separable,
+        "objective": objective,
     }
     result, path = identify_recording(
         recording,
@@ -284,6 +292,48 @@ def validate(
     typer.echo(format_validation(report))
     if out is not None:
         typer.echo(f"metrics: {out}")
+
+
+@app.command()
+def simulate(
+    recording: RecArg,
+    results: Annotated[
+        Path | None, typer.Option(help="Results .h5 of identify (best run; its config)")
+    ] = None,
+    params: Annotated[
+        Path | None, typer.Option(help="Parameters: TOML/JSON name = value (needs --config)")
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="Model config (default: from results)")
+    ] = None,
+    controller: Annotated[
+        str | None,
+        typer.Option(help="Closed loop: 'emps' or kp=…,kv=…[,u_max=…] (needs /r)"),
+    ] = None,
+    substeps: Annotated[int, typer.Option(help="RK4 sub-steps per sample interval")] = 4,
+    out: Annotated[Path, typer.Option(help="Output folder")] = Path("simulation"),
+    mass: MassOpt = None,
+) -> None:
+    """Simulate identified parameters from the recording's initial state and compare x, v,
+    a and force: RMS error, relative error, fit %; writes OUT/simulation.json, .h5, .png."""
+    from fricjax.api import enable_compilation_cache, simulate_recording
+    from fricjax.simulation import format_simulation
+
+    enable_compilation_cache()
+    if substeps < 1:
+        raise FricjaxError(f"--substeps: must be an integer >= 1, got {substeps}")
+    report = simulate_recording(
+        recording,
+        results=results,
+        params=params,
+        config=config,
+        controller=controller,
+        substeps=substeps,
+        out=out,
+        mass=mass,
+    )
+    typer.echo(format_simulation(report))
+    typer.echo(f"files: {', '.join(str(p) for p in report.files.values())}")
 
 
 @app.command()

@@ -30,7 +30,16 @@ from fricjax.model.registry import TERMS, make_term
 from fricjax.model.system import MASS, Model
 from fricjax.params import Param, ParamSpec
 
-SECTIONS = ("model", "params", "preprocess", "search", "anneal", "refine", "diagnose")
+SECTIONS = (
+    "model",
+    "params",
+    "preprocess",
+    "search",
+    "anneal",
+    "refine",
+    "diagnose",
+    "output_error",
+)
 PARAM_KEYS = ("unit", "lower", "upper", "init", "value", "free")
 
 

@@ -13,7 +13,10 @@ nonlinear parameters (ω, vs for the seed model) on the variable-projection cost
 :mod:`fricjax.search.separable` (the linear ones solved exactly at every step); their end
 points are expanded to full parameter vectors, which the refiner then polishes as above.
 Gauss–Newton standard deviations, correlations and identifiability flags follow, plus a
-census of the distinct minima the chains ended in.
+census of the distinct minima the chains ended in. With ``objective = "simulation"`` the
+equation-error estimate is then polished by output error with multiple shooting
+(:mod:`fricjax.output_error`), which compares simulated and recorded positions instead of
+forces computed from a twice-differentiated position.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from jaxtyping import Array
 
 from fricjax.errors import FricjaxError, where
 from fricjax.io.results import RunResult
+from fricjax.output_error import OutputErrorSettings, fit_output_error
 from fricjax.problem import Problem
 from fricjax.refine import RefineSettings, cluster_minima, refine, refine_many, uncertainty
 from fricjax.search.annealing import AnnealSettings
@@ -38,7 +42,20 @@ from fricjax.search.chains import METHODS, LevelInfo, SearchResult, Traces, run_
 from fricjax.search.separable import Separable, separate
 
 SEPARABLE_TABLE = "separable_budget"
-SEARCH_KEYS = ("method", "chains", "seed", "refine_top", "refine", "separable", SEPARABLE_TABLE)
+SEARCH_KEYS = (
+    "method",
+    "chains",
+    "seed",
+    "refine_top",
+    "refine",
+    "separable",
+    "objective",
+    SEPARABLE_TABLE,
+)
+#: ``equation``: seed eq. 11 throughout; ``simulation``: then output error with multiple
+#: shooting (:mod:`fricjax.output_error`) from the equation-error estimate.
+OBJECTIVES = ("equation", "simulation")
+OUTPUT_ERROR_TABLE = "output_error"
 
 
 @dataclass(frozen=True)
@@ -56,6 +73,11 @@ class IdentifySettings:
             to declare a linear basis.
         anneal: annealing control (eq. 15–16, schedules, stopping rule, move sizes).
         refiner: Levenberg–Marquardt settings.
+        objective: ``"equation"`` (default; seed eq. 11) or ``"simulation"``: after the
+            equation-error search and polish, an output-error fit with multiple shooting
+            (:func:`fricjax.output_error.fit_output_error`) starts from that estimate, and
+            the run reports its values, cost and σ (``[search].objective``).
+        output_error: settings of that fit (the ``[output_error]`` table).
     """
 
     method: str = "csaa"
@@ -66,6 +88,8 @@ class IdentifySettings:
     separable: bool = False
     anneal: AnnealSettings = field(default_factory=AnnealSettings)
     refiner: RefineSettings = field(default_factory=RefineSettings)
+    objective: str = "equation"
+    output_error: OutputErrorSettings = field(default_factory=OutputErrorSettings)
 
     @classmethod
     def from_tables(
@@ -78,7 +102,8 @@ class IdentifySettings:
         """Build from config tables, then apply CLI ``overrides`` (None values ignored).
 
         Override keys are ``IdentifySettings`` fields or ``AnnealSettings`` fields
-        (e.g. ``alpha``, ``schedule``, ``steps_per_level``, ``separable``). When the search
+        (e.g. ``alpha``, ``schedule``, ``steps_per_level``, ``separable``, ``objective``);
+        the ``[output_error]`` table holds the output-error settings. When the search
         is separable, the ``[search.separable_budget]`` table (``chains``, ``refine_top``
         and any ``[anneal]`` key) overrides ``[search]``/``[anneal]``; CLI overrides come
         last.
@@ -96,6 +121,10 @@ class IdentifySettings:
         for key in cli:
             if key not in SEARCH_KEYS and key not in anneal_names:
                 raise FricjaxError(f"override {key!r}: unknown setting")
+        if cli.get("objective", OBJECTIVES[0]) not in OBJECTIVES:
+            raise FricjaxError(
+                f"--objective: must be one of {', '.join(OBJECTIVES)}, got {cli['objective']!r}"
+            )
         separable = cli.get("separable", search.get("separable", cls.separable))
         if not isinstance(separable, bool | np.bool_):
             raise FricjaxError(
@@ -139,6 +168,12 @@ class IdentifySettings:
             raise FricjaxError(f"{where(source, '[search]')}: not an integer ({err})") from None
         if chains < 1 or top < 1:
             raise FricjaxError(f"{where(source, '[search].chains')}: must be >= 1")
+        objective = search.get("objective", cls.objective)
+        if objective not in OBJECTIVES:
+            raise FricjaxError(
+                f"{where(source, '[search].objective')}: must be one of "
+                f"{', '.join(OBJECTIVES)}, got {objective!r}"
+            )
         return cls(
             method=method,
             chains=chains,
@@ -148,6 +183,10 @@ class IdentifySettings:
             separable=bool(separable),
             anneal=AnnealSettings.from_dict(anneal_table, source=source),
             refiner=RefineSettings.from_dict(dict(tables.get("refine", {})), source=source),
+            objective=str(objective),
+            output_error=OutputErrorSettings.from_dict(
+                tables.get(OUTPUT_ERROR_TABLE, {}), source=source
+            ),
         )
 
 
@@ -192,7 +231,7 @@ def identify(
     )
     minima = cluster_minima(search.chain_x, search.chain_cost, lower, upper)
     d = spec.n_free
-    return RunResult(
+    run = RunResult(
         label=label or settings.method,
         method=settings.method,
         names=list(spec.free_names),
@@ -233,6 +272,52 @@ def identify(
             "separable": sep is not None,
             "search_space": f"separable ({sep.describe()})" if sep is not None else f"full ({d}-D)",
         },
+    )
+    if settings.objective == "simulation" and not search.interrupted:
+        run = _output_error_polish(problem, run, settings.output_error, start)
+    return run
+
+
+def _output_error_polish(
+    problem: Problem, run: RunResult, settings: OutputErrorSettings, started: float
+) -> RunResult:
+    """Output-error fit (:func:`fit_output_error`) from the equation-error estimate of
+    ``run``; the run then carries its values, cost, σ, correlations and flags, and records
+    the equation-error cost it started from. ``cost`` is E_OE [σ_x² units] and ``ems`` is
+    E_OE per residual entry (≈ 1 when the misfit is the noise on x)."""
+    fit = fit_output_error(problem, run.params, settings)
+    attrs = {
+        **run.attrs,
+        "objective": "output error, multiple shooting (fricjax.output_error)",
+        "objective_setting": "simulation",
+        "equation_cost": float(run.cost),
+        "equation_ems": float(run.ems),
+        "oe_cost": fit.cost,
+        "oe_cost_start": fit.cost_start,
+        "position_rms": fit.position_rms,
+        "x_scale": fit.x_scale,
+        "segments": fit.n_segments,
+        "segment_samples": fit.segment_samples,
+        "defect_x": fit.defect_x,
+        "defect_v": fit.defect_v,
+        "oe_steps": fit.n_steps,
+        "oe_success": fit.success,
+        "oe_substeps": settings.substeps,
+        "oe_hold": settings.hold,
+        "oe_defect_weight": settings.defect_weight,
+        "cond": fit.cond,
+        "wall_time": time.perf_counter() - started,
+    }
+    return replace(
+        run,
+        value=np.asarray(fit.value, dtype=np.float64),
+        cost=fit.cost,
+        ems=fit.cost / fit.n_residual,
+        std=np.asarray(fit.std, dtype=np.float64),
+        rel_std=np.asarray(fit.rel_std, dtype=np.float64),
+        corr=np.asarray(fit.corr, dtype=np.float64),
+        flags=["; ".join(f) for f in fit.flags],
+        attrs=attrs,
     )
 
 

@@ -64,6 +64,7 @@ __all__ = [
     "fit_simulation_error",
     "format_validation",
     "parse_controller",
+    "simulate_model",
     "simulation_error",
     "validate_model",
     "validate_recording",
@@ -198,21 +199,7 @@ def simulation_error(
     """
     problem = _problem(rec, cfg, params)
     p = _named(problem, params, source)
-    t = jnp.asarray(rec.t)
-    x0 = float(rec.x[0])
-    v0 = float((rec.x[1] - rec.x[0]) / rec.dt)
-    u = None if rec.u is None else jnp.asarray(rec.u)
-    closed = controller is not None and rec.r is not None
-    if closed:
-        w = None if rec.u is None else jnp.asarray(input_disturbance(controller, *_trx(rec)))
-        traj = simulate_closed_loop(
-            problem.model, p, t, jnp.asarray(rec.r), x0, v0, controller, w, substeps=substeps
-        )
-        xs, vs, acc, us = (np.asarray(y) for y in traj)
-    else:
-        traj = simulate(problem.model, p, t, x0, v0, u, substeps=substeps)
-        xs, vs, acc = (np.asarray(y) for y in traj)
-        us = None
+    closed, xs, vs, acc, us = simulate_model(rec, problem, p, controller, substeps=substeps)
     trim = problem.preprocess.trim if problem.preprocess is not None else 0
     keep = slice(trim, rec.n - trim)
     force = None
@@ -231,6 +218,49 @@ def simulation_error(
 
 def _trx(rec: Recording) -> tuple[np.ndarray, ...]:
     return rec.t, rec.x, rec.r, rec.u
+
+
+def simulate_model(
+    rec: Recording,
+    problem: Problem,
+    p: Mapping[str, Array],
+    controller: CascadePD | None,
+    *,
+    substeps: int = 4,
+    start: int = 0,
+    stop: int | None = None,
+    v0: float | None = None,
+) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Simulate ``problem.model`` at ``p`` over samples ``start:stop`` of ``rec``.
+
+    Closed loop (:func:`simulate_closed_loop`, reference ``/r[start:stop]``, external input
+    :func:`input_disturbance` of the whole record) when ``controller`` is given and the
+    record has ``/r``; else open loop from the recorded input. Initial state: ``x[start]``
+    [m] and ``v0`` [m/s] (default: the first difference ``(x[start+1] − x[start])/dt``).
+
+    Returns:
+        (closed, x [m], v [m/s], a [m/s²], u) over the m samples, numpy; ``u`` [unit of /u]
+        is the simulated controller output in closed loop, None in open loop.
+    """
+    keep = slice(start, stop)
+    t = jnp.asarray(rec.t[keep])
+    x0 = float(rec.x[start])
+    if v0 is None:
+        v0 = float((rec.x[start + 1] - rec.x[start]) / rec.dt)
+    u = None if rec.u is None else jnp.asarray(rec.u[keep])
+    closed = controller is not None and rec.r is not None
+    if closed:
+        w = None
+        if rec.u is not None:
+            w = jnp.asarray(input_disturbance(controller, *_trx(rec))[keep])
+        traj = simulate_closed_loop(
+            problem.model, p, t, jnp.asarray(rec.r[keep]), x0, v0, controller, w, substeps=substeps
+        )
+        xs, vs, acc, us = (np.asarray(y) for y in traj)
+        return True, xs, vs, acc, us
+    traj = simulate(problem.model, p, t, x0, v0, u, substeps=substeps)
+    xs, vs, acc = (np.asarray(y) for y in traj)
+    return False, xs, vs, acc, None
 
 
 def validate_model(

@@ -67,3 +67,23 @@ def test_unknown_term_and_missing_file(tmp_path: Path) -> None:
         load_config(path)
     with pytest.raises(FricjaxError, match="config file not found"):
         load_config(tmp_path / "nope.toml")
+
+
+def test_output_error_table_reaches_identify_settings(tmp_path):
+    from pathlib import Path
+
+    from fricjax.identify import IdentifySettings
+
+    text = (Path(__file__).resolve().parents[1] / "configs" / "emps.toml").read_text()
+    path = tmp_path / "oe.toml"
+    path.write_text(text + "\n[output_error]\nsegment_s = 0.25\nsubsteps = 2\n")
+    cfg = load_config(path)
+    s = IdentifySettings.from_tables(
+        cfg.tables, source=cfg.source, overrides={"objective": "simulation"}
+    )
+    assert s.objective == "simulation"
+    assert s.output_error.segment_s == 0.25 and s.output_error.substeps == 2
+    with pytest.raises(FricjaxError, match=r"oe\.toml.*segment_s"):
+        IdentifySettings.from_tables(
+            {**cfg.tables, "output_error": {"segment_s": -1.0}}, source=cfg.source
+        )

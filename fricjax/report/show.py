@@ -39,6 +39,23 @@ def parameter_table(run: RunResult) -> str:
     return format_table(rows, ("parameter", "unit", "value", "σ", "σ/|value|", "flags"))
 
 
+def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
+    a = run.attrs
+    if str(a.get("objective", "")).startswith("output error"):
+        # The output-error cost is Σ((x_sim − x)/σ_x)² + defects: not in N², not an EMS.
+        return [
+            ("objective", str(a["objective"])),
+            ("equation-error EMS of the start [N²]", fmt(a.get("equation_ems", float("nan")), 7)),
+            ("output-error cost [(x/σ_x)²]", fmt(run.cost, 7)),
+            ("position RMS [m]", fmt(a.get("position_rms", float("nan")), 4)),
+        ]
+    return [
+        ("cost after search [N²]", fmt(run.cost_search, 7)),
+        ("cost after refine [N²]", fmt(run.cost, 7)),
+        ("EMS [N²] (seed Table 4)", fmt(run.ems, 7)),
+    ]
+
+
 def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
     """What ``identify`` prints at the end: fit figures, parameters, flags, minima census."""
     a = run.attrs
@@ -50,9 +67,7 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
                 "chains x levels",
                 f"{a.get('n_chains')} x {a.get('levels')} ({a.get('n_evals')} cost evaluations)",
             ),
-            ("cost after search [N²]", fmt(run.cost_search, 7)),
-            ("cost after refine [N²]", fmt(run.cost, 7)),
-            ("EMS [N²] (seed Table 4)", fmt(run.ems, 7)),
+            *_cost_rows(run),
             ("wall time [s]", f"{a.get('wall_time', float('nan')):.2f}"),
             ("interrupted", str(a.get("interrupted", False))),
         ]

@@ -1,0 +1,280 @@
+"""Output-error identification with multiple shooting (fricjax.output_error): recovery of
+the paper twin's truth against equation error, single against multiple shooting, the
+continuity defects, settings and the ``identify`` objective option."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fricjax.config import load_config, parse_config
+from fricjax.data.recording import Recording
+from fricjax.data.twin import DEFAULT_NOISE_STD, PAPER_TRUTH
+from fricjax.errors import FricjaxError
+from fricjax.identify import IdentifySettings, identify
+from fricjax.model.simulate import simulate
+from fricjax.output_error import (
+    OutputErrorSettings,
+    fit_output_error,
+    jacobian_at,
+    noise_scale,
+    output_error_residual,
+    segmentation,
+)
+from fricjax.problem import build_problem
+from fricjax.refine import RefineSettings, refine, uncertainty
+
+ROOT = Path(__file__).resolve().parents[1]
+EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"
+EMPS_TRUTH = {"gain": 35.15065188, "offset": -3.1648, "Fc": 20.3935, "Fv": 203.5034, "mass": 95.1}
+
+
+# ---------------------------------------------------------------------------- settings
+
+
+def test_segmentation_counts_every_sample_once():
+    seg = segmentation(232, 1e-3, OutputErrorSettings(segment_s=0.05))
+    # 231 intervals / 50 ms -> S = round(4.62) = 5 segments of ceil(231/5) = 47 intervals
+    assert (seg.S, seg.L) == (5, 47) and seg.duration == pytest.approx(0.047)
+    np.testing.assert_array_equal(seg.seg * seg.L + seg.pos, np.arange(232))
+    np.testing.assert_array_equal(np.bincount(seg.seg), [47, 47, 47, 47, 44])
+    assert segmentation(232, 1e-3, OutputErrorSettings()).S == 1  # 0.23 s < 0.5 s
+    assert segmentation(232, 1e-3, OutputErrorSettings(segment_s=math.inf)).S == 1
+    # ceil leaves no empty segment: 10 intervals asked in 4 -> 4 segments of 3, 3, 3, 1
+    assert segmentation(11, 1.0, OutputErrorSettings(segments=4))[:2] == (4, 3)
+    assert segmentation(11, 1.0, OutputErrorSettings(segments=7))[:2] == (5, 2)
+    assert segmentation(11, 1.0, OutputErrorSettings(segments=50))[:2] == (10, 1)
+
+
+def test_settings_from_dict_refuses_bad_input_in_one_line():
+    s = OutputErrorSettings.from_dict({"segment_s": 0.25, "substeps": 2, "hold": "zero"}, "c.toml")
+    assert (s.segment_s, s.substeps, s.hold, s.defect_weight) == (0.25, 2, "zero", 10.0)
+    for table, msg in (
+        ({"segments_s": 1.0}, "c.toml: [output_error].segments_s: unknown key"),
+        ({"substeps": 0}, "c.toml: [output_error].substeps: must be an integer >= 1"),
+        ({"substeps": 1.5}, "[output_error].substeps: must be an integer"),
+        ({"segments": True}, "[output_error].segments: must be an integer"),
+        ({"defect_weight": -1.0}, "[output_error].defect_weight: must be a number > 0"),
+        ({"segment_s": "long"}, "[output_error].segment_s: must be a number"),
+        ({"x_scale": math.inf}, "[output_error].x_scale: must be finite"),
+        ({"hold": "cubic"}, "[output_error].hold: must be one of linear, zero"),
+    ):
+        with pytest.raises(FricjaxError) as err:
+            OutputErrorSettings.from_dict(table, "c.toml")
+        assert msg in str(err.value) and "\n" not in str(err.value)
+
+
+def test_noise_scale_estimates_white_noise_under_smooth_motion():
+    t = np.arange(2000) * 1e-3
+    rng = np.random.default_rng(3)
+    x = 0.05 * np.sin(2 * np.pi * 5 * t) + rng.normal(0.0, 2.4e-5, t.size)
+    # the 5 Hz motion adds (2π·5)³·0.05·dt³ ≈ 1.5e-6 m to Δ³x: 1e-3 of the noise's √20·σ
+    assert noise_scale(x) == pytest.approx(2.4e-5, rel=0.05)
+
+
+def test_identify_settings_objective_and_output_error_table():
+    default = IdentifySettings.from_tables({})
+    assert default.objective == "equation" and default.output_error == OutputErrorSettings()
+    tables = {"search": {"objective": "simulation"}, "output_error": {"segment_s": 0.25}}
+    s = IdentifySettings.from_tables(tables, source="c.toml")
+    assert s.objective == "simulation" and s.output_error.segment_s == 0.25
+    cli = IdentifySettings.from_tables({}, overrides={"objective": "simulation"})
+    assert cli.objective == "simulation"
+    with pytest.raises(FricjaxError, match=r"c.toml: \[search\].objective: must be one of"):
+        IdentifySettings.from_tables({"search": {"objective": "output"}}, source="c.toml")
+    with pytest.raises(FricjaxError, match="--objective: must be one of equation, simulation"):
+        IdentifySettings.from_tables({}, overrides={"objective": "output"})
+    with pytest.raises(FricjaxError, match=r"c.toml: \[output_error\].hold"):
+        IdentifySettings.from_tables({"output_error": {"hold": 1}}, source="c.toml")
+
+
+# ---------------------------------------------------------------------------- paper twin
+
+
+def _perturbed(problem) -> np.ndarray:
+    """The truth with every free parameter moved by ±5 % (fixed sign pattern), in the box."""
+    spec = problem.spec
+    truth = spec.flatten({k: v for k, v in PAPER_TRUTH.items() if k in spec})
+    signs = np.random.default_rng(1).choice([-1.0, 1.0], truth.size)
+    return np.clip(truth * (1.0 + 0.05 * signs), spec.lower, spec.upper)
+
+
+@pytest.fixture(scope="module")
+def twin_fits(twin_problem):
+    """Equation error (LM on seed eq. 11) and output error from the same perturbed start."""
+    spec = twin_problem.spec
+    start = _perturbed(twin_problem)
+    ee = refine(twin_problem.residual_fn, start, spec.lower, spec.upper, RefineSettings())
+    ee_unc = uncertainty(twin_problem.residual_fn, ee.x, spec.lower, spec.upper)
+    oe = fit_output_error(twin_problem, spec.as_dict(start))
+    truth = spec.flatten({k: v for k, v in PAPER_TRUTH.items() if k in spec})
+    return truth, np.asarray(ee.x), ee_unc, oe
+
+
+# ~40 s of CPU (compiling LM through the 26-parameter simulator): slow, with the numbers
+# measured on 2 cores in the comments; the open-loop tests below cover the same in the fast
+# suite on a 4-parameter model.
+@pytest.mark.slow
+def test_output_error_beats_equation_error_on_the_twin(twin_fits):
+    truth, ee_x, ee_unc, oe = twin_fits
+    sigma = ee_unc.std
+    # the parameters equation error pins to < 10 %: omega, Fp_3..5, Fp_7..9
+    well = np.flatnonzero(ee_unc.rel_std < 0.1)
+    assert len(well) >= 5
+    ee_err = np.sqrt(np.mean(((ee_x - truth)[well] / sigma[well]) ** 2))
+    oe_err = np.sqrt(np.mean(((oe.value - truth)[well] / sigma[well]) ** 2))
+    # measured: 2.19 σ (equation error: the filtered a is biased) against 1.40 σ, over
+    # omega, Fp_3..5, Fp_7..9, phi_4, phi_5
+    assert oe_err < 0.85 * ee_err
+    # a single well-placed parameter: the fundamental, ~1.8 σ off by equation error
+    k = oe.names.index("omega")
+    assert abs(oe.value[k] - truth[k]) < 0.3 * abs(ee_x[k] - truth[k])
+
+
+@pytest.mark.slow
+def test_output_error_fits_the_twin_to_the_noise(twin_fits):
+    *_, oe = twin_fits
+    # x_scale: the 24 µm white noise on x, estimated from Δ³x
+    assert oe.x_scale == pytest.approx(DEFAULT_NOISE_STD, rel=0.05)
+    # measured 2.31e-5 m: the misfit is the noise (232 samples, 28 fitted unknowns)
+    assert 0.7 * DEFAULT_NOISE_STD < oe.position_rms < 1.5 * DEFAULT_NOISE_STD
+    assert oe.n_segments == 1 and oe.defect_x == 0.0  # 0.23 s: one segment
+    assert oe.cost < 0.05 * oe.cost_start
+    assert oe.cost / oe.n_residual == pytest.approx((oe.position_rms / oe.x_scale) ** 2)
+
+
+# ---------------------------------------------------------------------------- shooting
+
+
+START = {**EMPS_TRUTH, "Fv": 180.0, "Fc": 25.0, "offset": 0.0, "mass": 110.0}
+
+
+@pytest.fixture(scope="module")
+def open_loop():
+    """1.5 s of the EMPS model driven open loop by a two-tone input (no decimation, so the
+    equation-error residual fits the short record), 10 µm noise on x; it reverses and
+    sticks for a few samples at each reversal. Fitted with 3 segments of 0.467 s."""
+    raw = tomllib.loads((ROOT / "configs" / "emps.toml").read_text())
+    raw["preprocess"].pop("decimate")
+    cfg = parse_config(raw, source="emps (no decimation)")
+    t = np.arange(1500) * 1e-3
+    u = 2.0 * np.sin(2 * np.pi * 1.5 * t) + np.sin(2 * np.pi * 4.0 * t + 0.3)
+    p = {k: jnp.asarray(v) for k, v in EMPS_TRUTH.items()}
+    clean = simulate(cfg.model, p, jnp.asarray(t), 0.0, 0.0, jnp.asarray(u), substeps=8)
+    assert np.sum(np.asarray(clean.v) == 0.0) >= 5  # stuck samples: stops are exercised
+    x = np.asarray(clean.x) + np.random.default_rng(0).normal(0.0, 1e-5, t.size)
+    problem = build_problem(Recording(t=t, x=x, u=u, u_unit="V", name="open loop"), cfg)
+    return problem, fit_output_error(problem, START, OutputErrorSettings(segments=3))
+
+
+def test_multiple_shooting_has_the_single_shooting_optimum(open_loop):
+    """The 3-segment optimum is a stationary point of plain output error (one segment):
+    the Gauss–Newton step of the single-shooting residual from there is ≪ σ."""
+    problem, fit = open_loop
+    assert fit.success and (fit.n_segments, fit.segment_samples) == (3, 467)
+    single = output_error_residual(problem, fit.params, OutputErrorSettings(segments=1))
+    assert single.names[-2:] == ["x_seg0", "v_seg0"]
+    x = jnp.asarray(np.concatenate([fit.value, fit.states_x[:1], fit.states_v[:1]]))
+    r, jac = (np.asarray(a) for a in jacobian_at(single.residual, x))
+    step = np.linalg.lstsq(jac, -r, rcond=None)[0][: fit.value.size]
+    # measured: < 1e-3 σ (the penalty moves the optimum by O(1/w²)); a 2-σ error in θ
+    # would give a step of 2 σ
+    np.testing.assert_array_less(np.abs(step), 0.01 * fit.std)
+    # one continuous trajectory: the single simulation from (ξ_0, ν_0) is the stitched one
+    assert float(r @ r) == pytest.approx(fit.cost, rel=1e-5)
+    np.testing.assert_allclose(problem.x + fit.x_scale * r, fit.x_sim, rtol=0, atol=1e-9)
+
+
+def test_structured_jacobian_equals_forward_mode(open_loop):
+    """The block-structured Jacobian (d + 2 tangents) is the plain forward-mode one
+    (d + 2S tangents)."""
+    problem, fit = open_loop
+    setup = output_error_residual(problem, fit.params, OutputErrorSettings(segments=3))
+    res = setup.residual
+    x = jnp.asarray(setup.x0) + 1e-4  # off the record: every defect row is non-zero
+    r, jac = jacobian_at(res, x)  # compiled by the fit already
+    r_ref, ref = eqx.filter_jit(lambda m, z: (m.value(z), jax.jacfwd(m.value)(z)))(res, x)
+    np.testing.assert_allclose(r, r_ref, rtol=1e-13)
+    np.testing.assert_allclose(jac, ref, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
+
+
+def test_continuity_defects_vanish_at_the_optimum(open_loop):
+    _, fit = open_loop
+    # measured 1.1e-9 m and 4.5e-10 m/s against 1e-5 m of noise: one trajectory
+    assert fit.defect_x < 1e-3 * fit.x_scale
+    assert fit.defect_v * 0.467 < 1e-3 * fit.x_scale
+    assert fit.position_rms == pytest.approx(1e-5, rel=0.1)
+
+
+def test_output_error_recovers_the_open_loop_truth(open_loop):
+    problem, fit = open_loop
+    for k in ("offset", "Fc", "Fv", "mass"):
+        i = fit.names.index(k)
+        assert abs(fit.value[i] - EMPS_TRUTH[k]) < 3.0 * fit.std[i], k
+    # equation error from the same start, on the twice-differentiated 10 µm noise, is far off
+    spec = problem.spec
+    ee = np.asarray(refine(problem.residual_fn, spec.flatten(START), spec.lower, spec.upper).x)
+    i = fit.names.index("mass")
+    assert abs(ee[i] - EMPS_TRUTH["mass"]) > 100 * abs(fit.value[i] - EMPS_TRUTH["mass"])
+
+
+def test_a_constant_input_is_refused(open_loop):
+    problem, _ = open_loop
+    from dataclasses import replace
+
+    with pytest.raises(FricjaxError, match="/u: all zero"):
+        fit_output_error(replace(problem, u=np.zeros_like(problem.u)), EMPS_TRUTH)
+
+
+# ---------------------------------------------------------------------------- slow
+
+
+@pytest.mark.slow  # ~2 min: the twin identification, then the output-error polish
+def test_identify_with_the_simulation_objective(twin_problem, paper_config):
+    tables = {**paper_config.tables, "search": {**paper_config.table("search")}}
+    tables["search"]["objective"] = "simulation"
+    run = identify(twin_problem, IdentifySettings.from_tables(tables))
+    equation = identify(twin_problem, IdentifySettings.from_tables(paper_config.tables))
+    # the first phase is the untouched equation-error path, bit for bit
+    assert run.attrs["equation_cost"] == equation.cost
+    np.testing.assert_array_equal(run.chain_x, equation.chain_x)
+    assert equation.attrs["objective"] == "equation error (seed eq. 11)"
+    assert run.attrs["objective_setting"] == "simulation"
+    assert run.attrs["segments"] == 1 and run.attrs["position_rms"] < 1.5 * DEFAULT_NOISE_STD
+    assert run.cost == run.attrs["oe_cost"] <= run.attrs["oe_cost_start"]
+    assert run.attrs["equation_cost"] > 0 and np.all(np.isfinite(run.value))
+    assert run.value.shape == run.std.shape == (twin_problem.spec.n_free,)
+
+
+@pytest.mark.slow  # ~4 min on 2 cores: 49 segments of 0.5 s over 24.7 s, 102 unknowns
+def test_emps_output_error_against_equation_error():
+    path = EMPS_DIR / "DATA_EMPS.mat"
+    if not path.is_file():
+        pytest.skip(f"EMPS data not found: {path}")
+    from fricjax.data.importers import import_mat
+
+    cfg = load_config(ROOT / "configs" / "emps.toml")
+    rec = import_mat(path, mapping={"t": "t", "x": "qm", "u": "vir", "r": "qg"}, u_unit="V")
+    problem = build_problem(rec, cfg)
+    ee = identify(problem, IdentifySettings.from_tables(cfg.tables, source=cfg.source))
+    fit = fit_output_error(problem, ee.params)
+    assert (fit.n_segments, fit.segment_samples) == (49, 505)
+    # Measured (2 cores, 100 LM steps): M 92.25 kg, Fv 191.09 N·s/m, Fc 21.77 N, offset
+    # −3.399 N against equation error's 95.12, 203.37, 20.41, −3.170 (published 95.1089,
+    # 203.5034, 20.3935, −3.1648): the open-loop position fit weighs the model's errors
+    # differently from the force fit, which moves the estimates by 3-7 % (20-30 published
+    # σ): the published model is not the whole physics of the rig.
+    for k in ("mass", "Fv", "Fc", "offset"):
+        assert fit.params[k] == pytest.approx(ee.params[k], rel=0.1, abs=0.5), k
+    assert fit.params["mass"] < ee.params["mass"] and fit.params["Fv"] < ee.params["Fv"]
+    # 1.77 mm RMS over ±0.1 m of travel, model error far above the encoder's 26 nm; the
+    # defects (0.30 mm, 0.49 mm/s) stay below the misfit they trade against
+    assert fit.position_rms < 2.5e-3 and fit.cost < 0.05 * fit.cost_start
+    assert fit.defect_x < fit.position_rms
