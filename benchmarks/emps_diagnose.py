@@ -25,6 +25,7 @@ What it does:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import tempfile
@@ -133,9 +134,14 @@ def main() -> int:
             paths[key] = write_recording(rec, Path(tmp) / f"{Path(fname).stem}.h5")
             recs[key] = read_recording(paths[key])
         t0 = time.perf_counter()
-        diag, written = diagnose_recording(
-            paths["estimation"], E.CONFIG, out=DIAG_DIR, validation=paths["validation"]
-        )
+        # From inside the temporary folder, so the report names the file, not a temp path.
+        with contextlib.chdir(tmp):
+            diag, written = diagnose_recording(
+                paths["estimation"].name,
+                E.CONFIG,
+                out=DIAG_DIR,
+                validation=paths["validation"].name,
+            )
         t_diag = time.perf_counter() - t0
 
     sel = diag.selection
