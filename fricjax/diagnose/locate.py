@@ -558,21 +558,23 @@ def default_whitener(
     noise = resolve_noise(problem, noise)
     c = linear_damping(problem, theta)
     first = make_whitener(problem, damping=c)
+    r = np.asarray(problem.residual(theta))
     spectrum = None
+    unmasked = first
     if noise == "spectral":
         dt = float((problem.t[-1] - problem.t[0]) / (problem.n - 1))
-        spectrum = noise_spectrum(np.asarray(problem.residual(theta)), dt)
+        spectrum = noise_spectrum(r, dt)
+        unmasked = make_whitener(problem, spectrum=spectrum)
     p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
     jump = np.asarray(problem.model.static(p, problem.signals, jnp.ones(problem.n)))
     if not np.any(np.abs(jump) > 0):
-        return first if spectrum is None else make_whitener(problem, spectrum=spectrum)
-    sigma = robust_sigma(first, first(problem.residual(theta)))
+        return unmasked
+    sigma = robust_sigma(first, first(r))
     mask = reversal_mask(problem, sigma)
     # A badly fitting base model inflates σ̂ and with it the mask, until almost every sample
     # is "near a reversal" and nothing is left to test: keep at most MAX_EXCLUDED of the
     # samples, those of smallest |v| (where a sign flip is likeliest).
-    M = first.M if spectrum is None else make_whitener(problem, spectrum=spectrum).M
-    limit = int(min(MAX_EXCLUDED * problem.n, 0.4 * M))
+    limit = int(min(MAX_EXCLUDED * problem.n, 0.4 * unmasked.M))
     if mask.sum() > limit:
         speed = np.abs(np.asarray(problem.v))
         mask = np.zeros(problem.n, dtype=bool)
