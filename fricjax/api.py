@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tomllib
@@ -214,6 +215,9 @@ def identify_recording(
 
     rec, cfg, problem = load(recording, config, mass=mass)
     settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source, overrides=overrides)
+    # one identification per call (and per CLI process): compilation, not the run, is
+    # what the user waits for, so its programs are compiled for compile speed
+    settings = dataclasses.replace(settings, fast_compile=True)
     run = identify(problem, settings, on_level=on_level)
     path = (
         Path(out)
@@ -329,7 +333,10 @@ def diagnose_recording(
     from fricjax.identify import IdentifySettings
 
     _, cfg, problem = load(recording, config, mass=mass)
-    ident = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
+    # the base fit runs once per diagnosis: compile for compile speed (see identify_recording)
+    ident = dataclasses.replace(
+        IdentifySettings.from_tables(cfg.tables, source=cfg.source), fast_compile=True
+    )
     table = dict(cfg.table("diagnose"))
     table.update({k: v for k, v in (overrides or {}).items() if v is not None})
     settings = DiagnoseSettings.from_dict(table, source=cfg.source)

@@ -28,7 +28,6 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
@@ -36,9 +35,23 @@ from fricjax.errors import FricjaxError, where
 from fricjax.io.results import RunResult
 from fricjax.output_error import OutputErrorSettings, fit_output_error
 from fricjax.problem import Problem
-from fricjax.refine import RefineSettings, cluster_minima, refine, refine_many, uncertainty
+from fricjax.refine import (
+    RefineSettings,
+    cluster_minima,
+    refine,
+    refine_many,
+    uncertainty_at,
+    value_and_jacobian,
+)
 from fricjax.search.annealing import AnnealSettings
-from fricjax.search.chains import METHODS, LevelInfo, SearchResult, Traces, run_chains
+from fricjax.search.chains import (
+    METHODS,
+    LevelInfo,
+    SearchResult,
+    Traces,
+    run_chains,
+    run_chains_fused,
+)
 from fricjax.search.separable import Separable, separate
 
 SEPARABLE_TABLE = "separable_budget"
@@ -78,6 +91,17 @@ class IdentifySettings:
             (:func:`fricjax.output_error.fit_output_error`) starts from that estimate, and
             the run reports its values, cost and σ (``[search].objective``).
         output_error: settings of that fit (the ``[output_error]`` table).
+        fast_compile: compile the programs that run once per call (the separable search,
+            the Levenberg–Marquardt polish, the Jacobian of the uncertainty) with
+            :data:`fricjax.search.fast_compile.FAST_COMPILE`: a cold ``fricjax identify``
+            of the paper twin then spends ~2-2.7 s compiling instead of ~7-14 s (2 shared
+            CPU cores, measured), and a warm run (compiled code reused: later calls in one
+            process, or the persistent cache of the CLI) ~0.2 s longer (~0.34 s instead of
+            ~0.16 s on a loaded machine). Off by default (library calls, sweeps and
+            benchmarks run many identifications per process); the one-shot entry point
+            :func:`fricjax.api.identify_recording` (``fricjax identify``) turns it on. The
+            26-D search is never compiled so (its programs run ~10⁵ cost evaluations). Not
+            a config key.
     """
 
     method: str = "csaa"
@@ -90,6 +114,7 @@ class IdentifySettings:
     refiner: RefineSettings = field(default_factory=RefineSettings)
     objective: str = "equation"
     output_error: OutputErrorSettings = field(default_factory=OutputErrorSettings)
+    fast_compile: bool = False
 
     @classmethod
     def from_tables(
@@ -203,9 +228,10 @@ def identify(
     lower, upper = spec.lower, spec.upper
     start = time.perf_counter()
     sep = separate(problem) if settings.separable else None
+    residual = _Residual(problem.residual_fn)
     if sep is None:
         search = run_chains(
-            jax.random.PRNGKey(settings.seed),
+            prng_key(settings.seed),
             problem.cost_fn,
             lower,
             upper,
@@ -222,13 +248,10 @@ def identify(
     if settings.refine and not search.interrupted:
         best_x, best_cost = _polish(problem, search, settings)
     wall = time.perf_counter() - start
-    unc = uncertainty(
-        _Residual(problem.residual_fn),
-        jnp.asarray(best_x),
-        lower,
-        upper,
-        names=list(spec.free_names),
-    )
+    # r and J in one compiled program (uncertainty() would compile the residual twice and
+    # build jacfwd's basis op by op)
+    r, jac = value_and_jacobian(residual, np.asarray(best_x), fast_compile=settings.fast_compile)
+    unc = uncertainty_at(r, jac, best_x, lower, upper, names=list(spec.free_names))
     minima = cluster_minima(search.chain_x, search.chain_cost, lower, upper)
     d = spec.n_free
     run = RunResult(
@@ -325,25 +348,31 @@ def _separable_search(
     sep: Separable, settings: IdentifySettings, on_level: Callable[[LevelInfo], None] | None
 ) -> SearchResult:
     """Chains over the nonlinear parameters on the projected cost; end points expanded to
-    full vectors θ [C, d] (their costs are unchanged: E_P(θ_nl) = E(full_theta(θ_nl)))."""
+    full vectors θ [C, d] (their costs are unchanged: E_P(θ_nl) = E(full_theta(θ_nl))).
+
+    One compiled program (:func:`run_chains_fused`): the projection solve compiles once,
+    the full vectors come out as the cost's auxiliary output, and the progress lines are
+    replayed after it has run (~0.1-0.2 s for the paper twin)."""
     nl = sep.nonlinear_spec
     if nl.n_free == 0:  # every free parameter is linear: one exact solve, nothing to search
         x, cost = sep.project(np.zeros((1, 0)))
         empty = np.zeros((0, 1))
         traces = Traces(empty, empty, empty, np.zeros(0), np.zeros(0, np.int64), np.zeros(0))
         return SearchResult(x[0], float(cost[0]), x, cost, traces, 0, False, "exact", 0.0, 1)
-    found = run_chains(
-        jax.random.PRNGKey(settings.seed),
-        sep.projected_cost,
+    found, chain_x = run_chains_fused(
+        prng_key(settings.seed),
+        sep.cost_and_theta,
         nl.lower,
         nl.upper,
         method=settings.method,
         settings=settings.anneal,
         n_chains=settings.chains,
         on_level=on_level,
+        has_aux=True,
+        fast_compile=settings.fast_compile,
         source=nl.source,
     )
-    chain_x = sep.expand(found.chain_x)
+    chain_x = np.asarray(chain_x)
     i = int(np.argmin(found.chain_cost))
     return found._replace(best_x=chain_x[i].copy(), chain_x=chain_x)
 
@@ -362,11 +391,12 @@ def _polish(
     starts = np.asarray(search.chain_x)[top]
     residual = _Residual(problem.residual_fn)
     lower, upper = problem.spec.lower, problem.spec.upper
+    fast = settings.fast_compile
     if len(top) == 1:
-        one = refine(residual, jnp.asarray(starts[0]), lower, upper, settings.refiner)
+        one = refine(residual, starts[0], lower, upper, settings.refiner, fast_compile=fast)
         xs, costs = np.asarray(one.x)[None], np.asarray(one.cost_after)[None]
     else:
-        out = refine_many(residual, jnp.asarray(starts), lower, upper, settings.refiner)
+        out = refine_many(residual, starts, lower, upper, settings.refiner, fast_compile=fast)
         xs, costs = np.asarray(out.x), np.asarray(out.cost_after)
     k = int(np.argmin(costs))
     x, cost = xs[k], float(costs[k])
@@ -391,6 +421,13 @@ class _Residual(eqx.Module):
 
     def __call__(self, theta: Array) -> Array:
         return _residual_at(self.residual, theta)
+
+
+def prng_key(seed: int) -> Array:
+    """``jax.random.PRNGKey(seed)`` (the raw ``uint32[2]`` threefry key, bit for bit),
+    built on the host: PRNGKey compiles a small program on its first call."""
+    s = int(seed) % 2**64  # PRNGKey's shift of the int64 seed is a logical one
+    return jax.device_put(np.array([s >> 32, s & 0xFFFFFFFF], dtype=np.uint32))
 
 
 def with_settings(settings: IdentifySettings, **changes: Any) -> IdentifySettings:

@@ -10,7 +10,7 @@ import pytest
 from fricjax.config import Config
 from fricjax.data.preprocess import PreprocessSettings
 from fricjax.data.twin import paper_twin
-from fricjax.identify import IdentifySettings, identify
+from fricjax.identify import IdentifySettings, identify, prng_key
 from fricjax.io.results import ResultsFile, read_results, write_results
 from fricjax.problem import Problem, build_problem
 
@@ -93,3 +93,12 @@ def test_other_methods_run_end_to_end(
     np.testing.assert_array_equal(back.value, run.value)
     np.testing.assert_array_equal(back.traces["best_cost"], run.traces["best_cost"])
     assert back.params == run.params and back.flags == run.flags
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7, 2**32 + 5, 2**40 + 3, -1, -(2**40), 2**63 - 1])
+def test_prng_key_is_jax_prngkey_bit_for_bit(seed: int) -> None:
+    import jax
+
+    key = prng_key(seed)
+    assert key.dtype == np.uint32 and key.shape == (2,)
+    np.testing.assert_array_equal(np.asarray(key), np.asarray(jax.random.PRNGKey(seed)))

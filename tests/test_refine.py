@@ -15,6 +15,8 @@ from fricjax.refine import (
     refine,
     refine_many,
     uncertainty,
+    uncertainty_at,
+    value_and_jacobian,
 )
 
 # Exponential decay + sinusoid, y(t) = A e^{−k t} + B sin(ω t + φ), noise-free.
@@ -273,6 +275,31 @@ def test_uncertainty_refuses_too_few_residuals() -> None:
         uncertainty(lambda p: p - 1.0, np.zeros(2), -np.ones(2), np.ones(2))
     with pytest.raises(FricjaxError, match="names: 1 names for 2 parameters"):
         uncertainty(bounded_residual, np.array([1.0, 1.5]), LO2, HI2, names=["A"])
+
+
+def test_fast_compile_polish_reaches_the_same_optimum() -> None:
+    # XLA's backend optimisation off and its fusion emitters off: the same LM iterations
+    # to round-off, so the same optimum to 1e-8 and no worse than the start
+    x0 = jnp.array([1.5, 1.0, 0.8, 2.9, 0.0])
+    fast = refine(decay_sine_residual, x0, LO, HI, fast_compile=True)
+    assert bool(fast.success) and float(fast.cost_after) < 1e-20 < float(fast.cost_before)
+    np.testing.assert_allclose(np.asarray(fast.x), np.asarray(TRUE), rtol=1e-8)
+    again = refine(decay_sine_residual, x0, LO, HI, fast_compile=True)
+    np.testing.assert_array_equal(np.asarray(again.x), np.asarray(fast.x))
+
+
+def test_uncertainty_at_one_program_jacobian_equals_uncertainty() -> None:
+    r = refine(bounded_residual, jnp.array([1.0, 2.0]), LO2, HI2)
+    ref = uncertainty(bounded_residual, r.x, LO2, HI2, names=["A", "k"])
+    res, jac = value_and_jacobian(bounded_residual, np.asarray(r.x))
+    assert res.shape == (50,) and jac.shape == (50, 2)
+    u = uncertainty_at(res, jac, r.x, LO2, HI2, names=["A", "k"])
+    np.testing.assert_allclose(u.std, ref.std, rtol=1e-12)
+    np.testing.assert_allclose(u.corr, ref.corr, rtol=1e-12, atol=1e-15)
+    assert u.sigma2 == pytest.approx(ref.sigma2, rel=1e-13) and u.flags == ref.flags
+    assert u.cond == pytest.approx(ref.cond, rel=1e-10)
+    with pytest.raises(FricjaxError, match="uncertainty: jac: shape \\(50, 3\\), expected"):
+        uncertainty_at(res, np.zeros((50, 3)), r.x, LO2, HI2)
 
 
 # --------------------------------------------------------------------------------------

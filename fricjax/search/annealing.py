@@ -435,6 +435,52 @@ def run_level(
     return state, stats
 
 
+def propose(
+    algorithm: Algorithm,
+    state: Any,
+    temperature: Float[ArrayLike, ""],
+    lower: Float[Array, " d"],
+    upper: Float[Array, " d"],
+    settings: AnnealSettings,
+) -> Float[Array, " d"]:
+    """The point ``[d]`` that the next ``algorithm.step`` of ``state`` evaluates.
+
+    With :func:`step_with_cost` this splits a step around its one cost evaluation, so a
+    caller can evaluate the proposals of all chains (and other points) at ONE call site of
+    the cost: the step is traced with a cost function that records its argument and the
+    rest of that trace is dead code (XLA removes it). Relies on the :class:`Algorithm`
+    contract: a step draws its randomness from the state's key and calls the cost exactly
+    once, at the top level of its trace.
+    """
+    seen: list[Array] = []
+
+    def record(x: Float[Array, " d"]) -> Float[Array, ""]:
+        seen.append(x)
+        return jnp.zeros((), dtype=state.cost.dtype)
+
+    algorithm.step(state, record, temperature, lower, upper, settings)
+    if len(seen) != 1:
+        raise TypeError(
+            f"{algorithm.name}: step evaluated the cost {len(seen)} times; exactly one "
+            "evaluation per step is the Algorithm contract"
+        )
+    return seen[0]
+
+
+def step_with_cost(
+    algorithm: Algorithm,
+    state: Any,
+    cost_new: Float[ArrayLike, ""],
+    temperature: Float[ArrayLike, ""],
+    lower: Float[Array, " d"],
+    upper: Float[Array, " d"],
+    settings: AnnealSettings,
+) -> Any:
+    """``algorithm.step`` given the cost ``cost_new`` of its proposal (:func:`propose`):
+    the same step (same draw, same proposal), the evaluation replaced by the value."""
+    return algorithm.step(state, lambda x: cost_new, temperature, lower, upper, settings)
+
+
 def improved(new_best: float, reference: float, settings: AnnealSettings) -> bool:
     """True if ``new_best`` beats ``reference`` by more than ``rel_tol·|ref| + abs_tol``
     (host-side part of the stopping rule; a first finite value always counts)."""

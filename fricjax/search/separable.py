@@ -72,9 +72,12 @@ Cost (2 CPU cores): ~100-150 µs per evaluation against ~5-8 µs for the 26-D co
 chains (which takes sin/cos by angle addition on the recording's time grid,
 :func:`fricjax.model.drive.phasor`; the projection passes plain signals, one sine/cosine
 pair per sample, a small part of its solve), but the 2-D search needs ~750 evaluations
-instead of ~1e5; the solve compiles into every search program (XLA inlines it), ~2-3 s of
-compilation each, which the persistent compilation cache of the CLI
-(:func:`fricjax.api.enable_compilation_cache`) removes from later runs.
+instead of ~1e5; the solve compiles into every program that evaluates it (XLA inlines
+it), so :func:`fricjax.identify.identify` runs the whole search as one program with one
+call site of :class:`CostAndTheta` (:func:`fricjax.search.chains.run_chains_fused`, with
+the compile-bound options of :mod:`fricjax.search.fast_compile`: ~1 s of compilation), and
+the persistent compilation cache of the CLI (:func:`fricjax.api.enable_compilation_cache`)
+removes it from later runs.
 """
 
 from __future__ import annotations
@@ -375,6 +378,19 @@ class ProjectedCost(eqx.Module):
         return _solve(self.projection, theta_nl)[1]
 
 
+class CostAndTheta(eqx.Module):
+    """``θ_nl [d_nl] -> (E_P(θ_nl) [N²], θ [d])``: the search cost with the full vector as
+    auxiliary output (:func:`fricjax.search.chains.run_chains_fused` with ``has_aux``)."""
+
+    projection: Projection
+
+    def __call__(
+        self, theta_nl: Float[Array, " d_nl"]
+    ) -> tuple[Float[Array, ""], Float[Array, " d"]]:
+        theta, cost = _solve(self.projection, theta_nl)
+        return cost, theta
+
+
 class FullTheta(eqx.Module):
     """``θ_nl [d_nl] -> θ [d]``: the original free vector at the projected optimum."""
 
@@ -422,6 +438,11 @@ class Separable:
         theta, cost = _project_batch(self.full_theta.projection, x)
         return np.asarray(theta), np.asarray(cost)
 
+    @property
+    def cost_and_theta(self) -> CostAndTheta:
+        """``θ_nl -> (E_P, θ)`` (:class:`CostAndTheta`)."""
+        return CostAndTheta(self.full_theta.projection)
+
     def expand(self, theta_nl: Float[Array, "C d_nl"]) -> np.ndarray:
         """``full_theta`` over a batch ``[C, d_nl] -> [C, d]``."""
         return self.project(theta_nl)[0]
@@ -449,14 +470,15 @@ def separate(problem: Problem, *, passes: int = PASSES) -> Separable:
         return per_problem[passes]
     lay = layout(problem.model, problem.spec, passes=passes)
     spec = problem.spec
+    # device_put, not jnp.asarray: the latter compiles a small copy program per shape
     arrays = {
-        k: jnp.asarray(np.asarray(getattr(problem, k), dtype=np.float64))
-        for k in ("t", "x", "v", "u", "a")
+        k: np.asarray(getattr(problem, k), dtype=np.float64) for k in ("t", "x", "v", "u", "a")
     }
-    arrays["base"] = jnp.asarray(spec.init)
-    arrays["fixed"] = jnp.asarray([p.init for p in spec.params if not p.free], dtype=jnp.float64)
-    arrays["lower"] = jnp.asarray([spec[n].lower for n in lay.lin_names], dtype=jnp.float64)
-    arrays["upper"] = jnp.asarray([spec[n].upper for n in lay.lin_names], dtype=jnp.float64)
+    arrays["base"] = np.asarray(spec.init, dtype=np.float64)
+    arrays["fixed"] = np.asarray([p.init for p in spec.params if not p.free], dtype=np.float64)
+    arrays["lower"] = np.asarray([spec[n].lower for n in lay.lin_names], dtype=np.float64)
+    arrays["upper"] = np.asarray([spec[n].upper for n in lay.lin_names], dtype=np.float64)
+    arrays = jax.device_put(arrays)
     projection = Projection(layout=lay, **arrays)
     free = problem.spec.free
     nonlinear = ParamSpec(tuple(free[i] for i in lay.nl_index), source=problem.spec.source)

@@ -16,8 +16,20 @@ import numpy as np
 import pytest
 
 from fricjax.errors import FricjaxError
-from fricjax.search.annealing import AnnealSettings, improved
-from fricjax.search.chains import LevelInfo, run_chains
+from fricjax.search.annealing import (
+    AnnealSettings,
+    improved,
+    propose,
+    step_with_cost,
+    temperature,
+)
+from fricjax.search.chains import (
+    METHODS,
+    LevelInfo,
+    relative_temperatures,
+    run_chains,
+    run_chains_fused,
+)
 
 CENTRE = np.array([0.9, -1.2, 2.5, 0.7, -0.4])
 LOWER, UPPER = np.full(5, -3.0), np.full(5, 3.0)
@@ -234,3 +246,127 @@ def test_two_host_devices_give_bit_identical_result(reference):
     # JSON round-trips float64 exactly (repr is shortest round-trip).
     for name, value in _arrays(reference).items():
         np.testing.assert_array_equal(np.asarray(out[name]), value, err_msg=name)
+
+
+# -- the whole search as one program (run_chains_fused) ---------------------------------
+
+
+class _CostWithAux:
+    """``x -> (cost, aux)``: the test cost with ``aux = [2x, cost]`` (a pytree leaf [d + 1])."""
+
+    def __call__(self, x):
+        c = _cost(x)
+        return c, jnp.concatenate([2.0 * x, c[None]])
+
+
+_WITH_AUX = _CostWithAux()
+
+
+def _fused(seed, settings=SETTINGS, method=METHOD, **kwargs):
+    return run_chains_fused(
+        jax.random.key(seed), _cost, LOWER, UPPER, method, settings, N_CHAINS, **kwargs
+    )
+
+
+@pytest.fixture(scope="module")
+def fused_reference():
+    return _fused(0)[0]
+
+
+def test_fused_runs_the_same_chains_as_run_chains(reference, fused_reference):
+    # Same algorithm, same draws, same acceptance and stopping: on this cost the one
+    # program reproduces the level-by-level host loop exactly (only the temperatures are
+    # computed as t0·(t_k/t0) instead of t_k: equal to round-off).
+    f = fused_reference
+    assert f.levels_run == reference.levels_run and f.t0 == reference.t0
+    for name, value in _arrays(reference).items():
+        if name == "trace_temperature":
+            np.testing.assert_allclose(_arrays(f)[name], value, rtol=1e-14)
+        else:
+            np.testing.assert_array_equal(_arrays(f)[name], value, err_msg=name)
+
+
+def test_fused_same_key_bit_identical_and_no_recompile(fused_reference):
+    before = len(TRACES)
+    again = _fused(0)[0]
+    for name, value in _arrays(fused_reference).items():
+        np.testing.assert_array_equal(_arrays(again)[name], value, err_msg=name)
+    # schedule and stopping fields are traced values of the program: no retrace
+    changed = dataclasses.replace(SETTINGS, schedule="cauchy", patience=3, K=2.0, alpha=0.9)
+    other = _fused(5, changed)[0]
+    assert len(TRACES) == before
+    assert not np.any(other.chain_x == fused_reference.chain_x)
+
+
+def test_fused_stopping_rule_on_the_device_matches_the_host_loop():
+    s = dataclasses.replace(SETTINGS, max_levels=200, t_min_rel=1e-3, patience=5, rel_tol=1e-6)
+    host = _run(3, s)
+    fused = _fused(3, s)[0]
+    assert fused.levels_run == host.levels_run < 200
+    np.testing.assert_array_equal(fused.traces.best_cost, host.traces.best_cost)
+    np.testing.assert_array_equal(fused.traces.n_evals, host.traces.n_evals)
+
+
+def test_fused_aux_is_the_cost_functions_output_at_each_chains_best_point():
+    r, aux = run_chains_fused(
+        jax.random.key(2), _WITH_AUX, LOWER, UPPER, METHOD, SETTINGS, N_CHAINS, has_aux=True
+    )
+    assert aux.shape == (N_CHAINS, 6)
+    np.testing.assert_array_equal(aux[:, :5], 2.0 * r.chain_x)
+    np.testing.assert_array_equal(aux[:, 5], r.chain_cost)
+    assert _fused(2)[1] is None
+
+
+def test_fused_on_level_replays_every_level_and_ctrl_c_marks_the_run():
+    seen: list[LevelInfo] = []
+
+    def on_level(info):
+        seen.append(info)
+        if info.level == 2:
+            raise KeyboardInterrupt
+
+    r = _fused(0, on_level=on_level)[0]
+    # the levels ran on the device: the replay stops, the (complete) run is kept
+    assert r.interrupted and r.levels_run == SETTINGS.max_levels
+    assert [i.level for i in seen] == [0, 1, 2]
+    np.testing.assert_array_equal([i.best_cost for i in seen], r.traces.best_cost[:3].min(axis=1))
+    np.testing.assert_array_equal([i.n_evals for i in seen], r.traces.n_evals[:3])
+    t = r.traces.wall_time
+    assert np.all(np.diff(t) > 0) and t[0] > 0
+
+
+def test_fused_cost_finite_nowhere_is_the_same_one_line_error():
+    with pytest.raises(FricjaxError) as err:
+        run_chains_fused(
+            jax.random.key(0),
+            lambda x: jnp.nan * x[0],
+            LOWER,
+            UPPER,
+            METHOD,
+            SETTINGS,
+            3,
+            source="cfg.toml",
+        )
+    assert str(err.value).startswith("cfg.toml: cost: not finite at any of the 512 points")
+
+
+@pytest.mark.parametrize("schedule", ["geometric", "boltzmann", "cauchy", "reheat"])
+def test_relative_temperatures_are_the_schedule_at_t0_1(schedule):
+    s = dataclasses.replace(SETTINGS, schedule=schedule, max_levels=120, reheat_every=7)
+    expected = np.asarray(temperature(schedule, 1.0, np.arange(120), s))
+    np.testing.assert_allclose(relative_temperatures(s), expected, rtol=1e-14, atol=0)
+
+
+def test_propose_and_step_with_cost_split_a_step_around_its_evaluation():
+    algorithm = METHODS["csaa"]
+    s = SETTINGS
+    x0 = jnp.asarray(CENTRE + 0.5)
+    state = algorithm.init(jax.random.key(4), x0, _cost(x0), LOWER, UPPER, s)
+    whole = algorithm.step(state, _cost, 1.0, LOWER, UPPER, s)
+    x_new = propose(algorithm, state, 1.0, LOWER, UPPER, s)
+    split = step_with_cost(algorithm, state, _cost(x_new), 1.0, LOWER, UPPER, s)
+    for a, b in zip(whole, split, strict=True):
+        if jnp.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(a, b)
+    assert int(whole.n_evals) == int(state.n_evals) + 1

@@ -238,12 +238,41 @@ def test_a_fully_linear_model_is_one_exact_solve_with_the_mass_column() -> None:
 # -- identify ---------------------------------------------------------------------------
 
 
-def test_separable_identify_recovers_the_full_path_optimum(
-    twin_problem: Problem, paper_config: Config
-) -> None:
+@pytest.fixture(scope="module")
+def separable_run(twin_problem: Problem, paper_config: Config):
     settings = IdentifySettings.from_tables(paper_config.tables, source=paper_config.source)
     assert settings.separable  # the shipped default
-    sep_run = identify(twin_problem, settings)
+    return settings, identify(twin_problem, settings)
+
+
+def test_cost_and_theta_is_the_projected_cost_and_the_full_vector(
+    twin_sep: Separable,
+) -> None:
+    x = jnp.array([2 * math.pi * 5, 0.121])
+    cost, theta = twin_sep.cost_and_theta(x)
+    assert float(cost) == float(twin_sep.projected_cost(x))
+    np.testing.assert_array_equal(np.asarray(theta), np.asarray(twin_sep.full_theta(x)))
+
+
+def test_separable_identify_is_bit_reproducible_and_its_chains_are_full_vectors(
+    twin_problem: Problem, separable_run
+) -> None:
+    settings, run = separable_run
+    again = identify(twin_problem, settings)  # the compiled programs are reused
+    np.testing.assert_array_equal(again.value, run.value)
+    np.testing.assert_array_equal(again.chain_x, run.chain_x)
+    np.testing.assert_array_equal(again.traces["best_cost"], run.traces["best_cost"])
+    # every chain end point is the full vector of its projected optimum: E(θ) = E_P
+    costs = np.asarray(_full_cost(twin_problem.cost_fn, jnp.asarray(run.chain_x)))
+    np.testing.assert_allclose(costs, run.chain_cost, rtol=1e-9)
+    assert run.traces["n_evals"][-1] == run.attrs["n_evals"]
+    assert np.all(np.diff(run.traces["wall_time"]) > 0)
+
+
+def test_separable_identify_recovers_the_full_path_optimum(
+    twin_problem: Problem, paper_config: Config, separable_run
+) -> None:
+    settings, sep_run = separable_run
     # the 26-D search of paper.toml; one end point polished (the refiner's compilation is
     # then the separable run's, which keeps this test fast)
     full = IdentifySettings.from_tables(
