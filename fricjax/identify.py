@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -38,6 +39,7 @@ from fricjax.problem import Problem
 from fricjax.refine import (
     RefineSettings,
     cluster_minima,
+    compile_refine,
     refine,
     refine_many,
     uncertainty_at,
@@ -229,6 +231,7 @@ def identify(
     start = time.perf_counter()
     sep = separate(problem) if settings.separable else None
     residual = _Residual(problem.residual_fn)
+    polish = _compile_polish_ahead(problem, residual, settings, sep is not None)
     if sep is None:
         search = run_chains(
             prng_key(settings.seed),
@@ -246,7 +249,9 @@ def identify(
     best_x, cost_search = np.asarray(search.best_x), float(search.best_cost)
     best_cost = cost_search
     if settings.refine and not search.interrupted:
-        best_x, best_cost = _polish(problem, search, settings)
+        best_x, best_cost = _polish(problem, search, settings, polish)
+    if polish is not None:
+        polish.cancel()  # not needed (interrupted): do not wait for it
     wall = time.perf_counter() - start
     # r and J in one compiled program (uncertainty() would compile the residual twice and
     # build jacfwd's basis op by op)
@@ -377,8 +382,41 @@ def _separable_search(
     return found._replace(best_x=chain_x[i].copy(), chain_x=chain_x)
 
 
+def _compile_polish_ahead(
+    problem: Problem, residual: _Residual, settings: IdentifySettings, separable: bool
+) -> Future | None:
+    """Start compiling the single-start polish in a thread, or None where it does not pay.
+
+    For a one-shot run (``fast_compile``) on the separable path the search is one short
+    program whose tracing and compilation, and the polish's, make up most of a cold
+    ``fricjax identify``; XLA compiles without Python's lock, so the polish's compilation
+    runs on the second core while the search is traced, compiled and run. Only with one
+    start (``refine_top`` = 1, the paper config's: a batch of starts compiles another
+    program)."""
+    if not (settings.fast_compile and separable and settings.refine):
+        return None
+    if min(settings.refine_top, settings.chains) != 1:
+        return None
+    spec = problem.spec
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fricjax-polish-compile")
+    future = pool.submit(
+        compile_refine,
+        residual,
+        spec.init,
+        spec.lower,
+        spec.upper,
+        settings.refiner,
+        fast_compile=True,
+    )
+    pool.shutdown(wait=False)
+    return future
+
+
 def _polish(
-    problem: Problem, search: SearchResult, settings: IdentifySettings
+    problem: Problem,
+    search: SearchResult,
+    settings: IdentifySettings,
+    ahead: Future | None = None,
 ) -> tuple[np.ndarray, float]:
     """LM on the best ``refine_top`` chain end points at once; keep the best result.
 
@@ -393,7 +431,10 @@ def _polish(
     lower, upper = problem.spec.lower, problem.spec.upper
     fast = settings.fast_compile
     if len(top) == 1:
-        one = refine(residual, starts[0], lower, upper, settings.refiner, fast_compile=fast)
+        program = ahead.result() if ahead is not None else None
+        one = refine(
+            residual, starts[0], lower, upper, settings.refiner, fast_compile=fast, program=program
+        )
         xs, costs = np.asarray(one.x)[None], np.asarray(one.cost_after)[None]
     else:
         out = refine_many(residual, starts, lower, upper, settings.refiner, fast_compile=fast)

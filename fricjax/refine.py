@@ -307,6 +307,7 @@ def refine(
     settings: RefineSettings = _DEFAULT_SETTINGS,
     *,
     fast_compile: bool = False,
+    program: Callable[..., Refined] | None = None,
 ) -> Refined:
     """Levenberg–Marquardt polish of one point inside the box [lower, upper].
 
@@ -326,6 +327,8 @@ def refine(
             the paper twin (26 parameters, 200 LM steps, 2 CPU cores) ~0.75 s to compile
             instead of ~3.2 s, ~145 ms to run instead of ~45 ms (measured). For a polish
             compiled once and run once; a program reused many times is better optimised.
+        program: the compiled program from :func:`compile_refine` for these arguments'
+            shapes and settings (``fast_compile`` is then the one it was compiled with).
 
     Returns:
         :class:`Refined` of jax arrays (x [d], scalars).
@@ -333,8 +336,28 @@ def refine(
     x, lo, hi = _check_box(x0, lower, upper, batched=False)
     settings = _checked(settings)
     # numpy arguments: the call transfers them (jnp.asarray would compile a copy per shape)
-    run = _refine_one_fast if fast_compile else _refine_one_jit
+    run = program or (_refine_one_fast if fast_compile else _refine_one_jit)
     return run(residual_fn, x, lo, hi, settings)
+
+
+def compile_refine(
+    residual_fn: ResidualFn,
+    x0: Float[Array, " d"],
+    lower: Float[Array, " d"],
+    upper: Float[Array, " d"],
+    settings: RefineSettings = _DEFAULT_SETTINGS,
+    *,
+    fast_compile: bool = False,
+) -> Callable[..., Refined]:
+    """:func:`refine`'s program compiled ahead of time, for ``program=`` of :func:`refine`
+    (same arguments; ``x0`` only gives the shape). Tracing and XLA compilation happen
+    here, so a caller can run them in a thread while it does other work: XLA compiles
+    without Python's lock, on the second core (a cold ``fricjax identify`` overlaps the
+    polish's compilation with the search's)."""
+    x, lo, hi = _check_box(x0, lower, upper, batched=False)
+    settings = _checked(settings)
+    jitted = _refine_one_fast if fast_compile else _refine_one_jit
+    return jitted.lower(residual_fn, x, lo, hi, settings).compile()
 
 
 def refine_many(

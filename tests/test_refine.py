@@ -12,6 +12,7 @@ from fricjax.errors import FricjaxError
 from fricjax.refine import (
     RefineSettings,
     cluster_minima,
+    compile_refine,
     refine,
     refine_many,
     uncertainty,
@@ -286,6 +287,22 @@ def test_fast_compile_polish_reaches_the_same_optimum() -> None:
     np.testing.assert_allclose(np.asarray(fast.x), np.asarray(TRUE), rtol=1e-8)
     again = refine(decay_sine_residual, x0, LO, HI, fast_compile=True)
     np.testing.assert_array_equal(np.asarray(again.x), np.asarray(fast.x))
+
+
+def test_polish_compiled_ahead_in_a_thread_is_the_same_polish() -> None:
+    # compile_refine's program (compiled in a worker thread, as a cold identify does while
+    # the search runs) gives the call-time compiled polish bit for bit, from another start
+    from concurrent.futures import ThreadPoolExecutor
+
+    x0 = jnp.array([1.5, 1.0, 0.8, 2.9, 0.0])
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        program = pool.submit(
+            compile_refine, decay_sine_residual, np.asarray(LO), LO, HI, fast_compile=True
+        ).result()
+    ahead = refine(decay_sine_residual, x0, LO, HI, program=program)
+    now = refine(decay_sine_residual, x0, LO, HI, fast_compile=True)
+    np.testing.assert_array_equal(np.asarray(ahead.x), np.asarray(now.x))
+    assert float(ahead.cost_after) == float(now.cost_after) < 1e-20
 
 
 def test_uncertainty_at_one_program_jacobian_equals_uncertainty() -> None:

@@ -271,11 +271,15 @@ def run_all(
     jobs: int,
     resume: bool,
     reverse: bool = False,
+    per_process: int = 0,
 ) -> dict[str, dict]:
     """Diagnose every row (skipping those already in ``results`` when ``resume``).
 
     Order: the rows' (:func:`run_order`). ``jobs`` > 1 deals the cases out round robin to
-    worker processes (each compiles once per length)."""
+    worker processes (each compiles once per length). ``per_process`` > 0: consecutive
+    batches of that many cases, each in a fresh worker process (``jobs`` at a time) — XLA's
+    CPU backend keeps every compiled program's code, and one process diagnosing ~25 cases
+    ran out of it ("LLVM ERROR: Unable to allocate section memory", twice)."""
     results.mkdir(parents=True, exist_ok=True)
     done: dict[str, dict] = {}
     todo = []
@@ -288,6 +292,19 @@ def run_all(
     todo.sort(key=lambda r: r["duration_s"])  # stable: keeps run_order within a length
     if reverse:  # a second run on the same folder works from the other end
         todo.reverse()
+    if per_process > 0 and len(todo) > per_process:
+        batches = [todo[i : i + per_process] for i in range(0, len(todo), per_process)]
+        with ProcessPoolExecutor(
+            max_workers=max(jobs, 1), mp_context=get_context("spawn"), max_tasks_per_child=1
+        ) as pool:
+            futures = [
+                pool.submit(diagnose_rows, batch, str(data), str(results), resume)
+                for batch in batches
+            ]
+            for fut in futures:
+                for res in fut.result():
+                    done[res["case"]] = res
+        return done
     if jobs <= 1 or len(todo) <= 1:
         for res in diagnose_rows(todo, str(data), str(results), resume):
             done[res["case"]] = res
@@ -992,6 +1009,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--nulls", type=int, default=6, help="null cases per length")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (1: this one)")
+    ap.add_argument(
+        "--per-process",
+        type=int,
+        default=10,
+        help="cases per fresh worker process (0: all in one; XLA's code memory runs out "
+        "after ~25 cases)",
+    )
     ap.add_argument("--resume", action="store_true", help="reuse per-case diagnoses in DATA")
     ap.add_argument(
         "--report-only",
@@ -1033,7 +1057,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 results[row["case"]] = json.loads(path.read_text())
     else:
         results = run_all(
-            rows, data, data / "diagnosis", args.jobs, args.resume, reverse=args.reverse
+            rows,
+            data,
+            data / "diagnosis",
+            args.jobs,
+            args.resume,
+            reverse=args.reverse,
+            per_process=args.per_process,
         )
         for row in rows:  # cases another run on the same folder finished meanwhile
             path = data / "diagnosis" / f"{row['case']}.json"
