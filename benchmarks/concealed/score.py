@@ -356,6 +356,7 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
         "raw_rms": truth.get("raw_rms_over_sigma", 0.0),
         "absorbed": truth.get("absorbed_fraction"),
         "c_refit": truth.get("concealment_refit", 0.0),
+        "c_ee_refit": truth.get("concealment_ee_refit"),
         # on level: c within [0.75, 1.33]× the target (the secant may stop short when the
         # signature is not linear in the amplitude or the amplitude bound is hit)
         "on_level": effect == gen.NULL or 0.75 <= truth["concealment"] / truth["level"] <= 4 / 3,
@@ -765,6 +766,12 @@ def report(
                         ".3g",
                     ),
                     _g(
+                        float(np.median([r["c_ee_refit"] for r in rs]))
+                        if all(r.get("c_ee_refit") is not None for r in rs)
+                        else None,
+                        ".3g",
+                    ),
+                    _g(
                         float(np.median([r["c_fit"] for r in rs]))
                         if all(r.get("c_fit") is not None for r in rs)
                         else None,
@@ -792,7 +799,10 @@ def report(
         "c_ee (median): what the diagnosis' score test can see, ‖(I − P_{J_w})·W·δr‖/σ_x with "
         "δr the effect's change of the equation-error residual at the truth, W the "
         "diagnosis' whitener, J_w the whitened base Jacobian (its square is the score test's "
-        "noncentrality). c_fit (median): excess of the diagnosis' base fit over pure noise, "
+        "noncentrality). c_ee,refit (median): the same norm after the base's 26 parameters are "
+        "refitted in their box (bounded least squares, noise-free record; "
+        "generate.refit_concealment): where it is far from c_ee the linearisation was wrong. "
+        "c_fit (median): excess of the diagnosis' base fit over pure noise, "
         "√(RSS_w/σ_x² − RSS_w/σ̂²) — what the diagnosis was actually left with.",
         "",
         _table(
@@ -802,6 +812,7 @@ def report(
                 "c",
                 "c_refit",
                 "c_ee",
+                "c_ee,refit",
                 "c_fit",
                 "max rms(s)/σ_x",
                 "absorbed",
@@ -821,6 +832,7 @@ def report(
             _g(r["c_out"], ".3g"),
             _g(r["c_refit"], ".3g"),
             _g(r.get("c_ee"), ".3g"),
+            _g(r.get("c_ee_refit"), ".3g"),
             _g(r.get("c_fit"), ".3g"),
             _g(r.get("sigma_ratio"), ".2f"),
             _g(r["raw_rms"], ".3g"),
@@ -836,7 +848,8 @@ def report(
         "## Every case",
         "",
         "c: output-error concealment; c_refit: its crude nonlinear upper bound; c_ee: "
-        "equation-error (whitened) concealment at the truth; c_fit = √(RSS_w/σ_x² − "
+        "equation-error (whitened) concealment at the truth, linearised; c_ee,refit: the same "
+        "with the base refitted in its box; c_fit = √(RSS_w/σ_x² − "
         "RSS_w/σ̂²): the excess of the diagnosis' own base fit over pure noise, in σ_x (what it "
         "was left with; noisy, ±~6 near zero); σ̂/σ: the diagnosis' noise estimate over the "
         "true σ_x; ΔBIC₁, p₁: of the first finding; held-out: improvement of each named "
@@ -851,6 +864,7 @@ def report(
                 "c",
                 "c_refit",
                 "c_ee",
+                "c_ee,refit",
                 "c_fit",
                 "σ̂/σ",
                 "rms/σ",
