@@ -160,14 +160,20 @@ def heldout_check(
     noise: str = "auto",
     steps: Sequence[tuple[Model, ParamSpec, np.ndarray]] = (),
 ) -> dict[str, Any]:
-    """Fit on the first (1 − fraction) of the record, evaluate EMS on the rest (or on a
-    second recording): the gain must survive on data the fit has not seen.
+    """Fit on the first (1 − fraction) of the record, score on the rest (or on a second
+    recording): the gain must survive on data the fit has not seen.
 
     Every model is refitted (GLS in the whitened space of the base fit on the training
-    part) and scored by its EMS [N²] on the test part. ``steps``: the intermediate models
-    of forward selection (base + first term, base + first two, ...); their EMS gives each
-    finding its own held-out improvement ``1 − EMS_k/EMS_{k−1}`` (``step_improvements``),
-    not just the last model's.
+    part) and scored on the test part by the same statistic the fit minimises: the
+    whitened RSS ``‖W_test·r(θ_train)‖²`` [m²], with ONE whitener ``W_test`` built from the
+    base model fitted on the training part (so every model is judged in the same metric).
+    The unwhitened EMS [N²] is reported beside it but does not decide: it weighs each
+    frequency by the noise gain of the double differentiation, so on a 1 s record it is
+    dominated by the high band where the noise is amplified most and where no catalogue
+    term lives (session 3: the friction-drift finding lost 0.2 % of test EMS while its
+    whitened test RSS fell). ``steps``: the intermediate models of forward selection (base
+    + first term, base + first two, ...); each finding gets its own held-out improvement
+    ``1 − RSS_k/RSS_{k−1}`` (``step_improvements``), not just the last model's.
     """
     if validation is not None:
         train, test = problem, validation
@@ -177,22 +183,33 @@ def heldout_check(
         train, test = _split(problem, 0, k), _split(problem, k, problem.n)
         where_ = f"last {fraction:.0%} of the record"
     wh = default_whitener(train, base[2], noise)
-
-    def test_ems(model: Model, spec: ParamSpec, theta: np.ndarray) -> float:
-        fit_theta, _ = gls_fit(with_model(train, model, spec), model, spec, theta, wh)
-        return with_model(test, model, spec).ems(fit_theta)
-
+    fits = []
     chain = [base, *steps] if steps else [base, final]
-    ems = [test_ems(*m) for m in chain]
+    for model, spec, theta in chain:
+        fit_theta, _ = gls_fit(with_model(train, model, spec), model, spec, theta, wh)
+        fits.append((model, spec, fit_theta))
+    base_test = with_model(test, base[0], base[1])
+    wh_test = default_whitener(base_test, fits[0][2], noise)
+    rss, ems = [], []
+    for model, spec, theta in fits:
+        r_w = np.asarray(whitened_residual(test, model, spec, wh_test)(jnp.asarray(theta)))
+        rss.append(float(r_w @ r_w))
+        ems.append(with_model(test, model, spec).ems(theta))
     out: dict[str, Any] = {
+        "metric": "whitened RSS on the held-out part",
+        "rss_w_before": rss[0],
+        "rss_w_after": rss[-1],
+        "improvement": 1 - rss[-1] / rss[0],
         "ems_before": ems[0],
         "ems_after": ems[-1],
-        "improvement": 1 - ems[-1] / ems[0],
+        "ems_improvement": 1 - ems[-1] / ems[0],
+        "dof": wh_test.dof,
         "on": where_,
     }
     if steps:
+        out["step_rss_w"] = rss[1:]
         out["step_ems"] = ems[1:]
-        out["step_improvements"] = [1 - b / a for a, b in itertools.pairwise(ems)]
+        out["step_improvements"] = [1 - b / a for a, b in itertools.pairwise(rss)]
     return out
 
 
