@@ -255,14 +255,18 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
         lines += [
             "",
             f"The diagnosis' own held-out check (its whitened-GLS fits on the estimation file, "
-            f"EMS on the {held['on']}): {held['ems_before']:.2f} -> {held['ems_after']:.2f} N² "
-            f"({100 * held['improvement']:.1f} % better).",
+            f"on the {held['on']}): 1 kHz EMS {held['ems_before']:.2f} -> "
+            f"{held['ems_after']:.2f} N² ({100 * held['ems_improvement']:+.1f} %); spectrally "
+            f"whitened RSS over {held['dof']} dimensions {held['rss_w_before']:.4g} -> "
+            f"{held['rss_w_after']:.4g} ({100 * held['rss_w_improvement']:+.1f} %). The "
+            f"{held['metric']} decides (force noise; the spectral whitener is the base "
+            "residual's own spectrum on the pulse file and counts the base's misfit as noise).",
         ]
     gains = [f for f in diag.findings if "heldout_improvement" in f]
     if gains:
         lines += [
             "",
-            "Each finding's own held-out gain (1 kHz EMS on the pulse file, model with the "
+            "Each finding's own held-out gain (EMS on the pulse file, model with the "
             "term against the model before it, both fitted on DATA_EMPS by the diagnosis):",
             "",
             "| finding | held-out gain | verdict |",

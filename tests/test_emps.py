@@ -207,4 +207,6 @@ def test_blind_diagnosis_names_asymmetry_and_beats_the_published_model(recs, cfg
     assert e_new.rel_error < 0.97 * e_pub.rel_error  # measured 5.58 vs 5.96 %
     assert equation_error(val, fcfg, after).ems < equation_error(val, cfg, pub).ems
     assert diag.heldout["on"] == "second recording"
-    assert diag.heldout["rss_w_after"] < diag.heldout["rss_w_before"]
+    # force noise (recorded drive input): the held-out check is decided by the EMS
+    assert diag.heldout["metric"] == "EMS"
+    assert diag.heldout["ems_after"] < diag.heldout["ems_before"]

@@ -135,11 +135,11 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
     if diag.heldout:
         h = diag.heldout
         lines += [
-            f"Held-out check ({h.get('on')}): whitened RSS {fmt(h['rss_w_before'] / 1e-12, 6)}"
-            f" → {fmt(h['rss_w_after'] / 1e-12, 6)} µm² over {h['dof']} noise dimensions "
-            f"({100 * h['improvement']:+.1f} %); EMS {fmt(h['ems_before'], 6)} → "
-            f"{fmt(h['ems_after'], 6)} N² ({100 * h['ems_improvement']:+.1f} %). The whitened "
-            "RSS decides: it weighs every frequency by its noise, as the fit does.",
+            f"Held-out check ({h.get('on')}): whitened RSS {fmt(h['rss_w_before'], 6)}"
+            f" → {fmt(h['rss_w_after'], 6)} over {h['dof']} noise dimensions "
+            f"({100 * h['rss_w_improvement']:+.1f} %); EMS {fmt(h['ems_before'], 6)} → "
+            f"{fmt(h['ems_after'], 6)} N² ({100 * h['ems_improvement']:+.1f} %). "
+            f"Decided by the {h['metric']} (the metric in which the noise model is white).",
             "",
         ]
         named = [f for f in diag.findings if "heldout_improvement" in f]
