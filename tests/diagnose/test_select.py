@@ -76,7 +76,9 @@ KNOWN_GAPS = {
     "asymmetric_friction": "not detected: the base fit absorbs its linearised signature "
     "(c_ee = 2.0) yet leaves c_refit = 33 noise std of broadband structure, which inflates the "
     "residual's own noise estimate sigma_hat and so hides itself",
-    "quadratic_drag": "not detected: same mechanism (c_ee = 2.5, c_refit = 30)",
+    "quadratic_drag": "not detected: same mechanism (c_ee = 2.5, c_refit = 30); what the "
+    "refitted base leaves is not along the term's linearised signature at the base fit "
+    "(session 4, concealed case at c_ee,refit = 11.5: its score statistic 0.48, p = 0.48)",
 }
 
 
