@@ -174,3 +174,21 @@ def test_refit_measure_hits_target_and_agrees_with_linear_for_a_small_effect(
     assert truth["concealment_ee_refit"] == truth["concealment"]
     assert truth["concealment_ee"] == pytest.approx(truth["concealment"], rel=0.1)
     assert case.case_id not in {spec.case_id(SEED), spec.case_id(SEED, "equation")}
+
+
+def test_amplitude_search_stays_in_the_first_bracket_of_a_non_monotone_concealment() -> None:
+    # c(a) = 2a² rises to 18 at a = 3, then collapses to 1 (the base absorbs larger effects
+    # another way). Once an evaluation lands above the target the search must stay inside
+    # the bracket and converge on the rising branch (root √5); the plain secant hops onto
+    # the collapsed branch and needed 8 evaluations, MAX_EVALS, for the same root.
+    def c_of(a: float) -> tuple[float, None, None]:
+        return (2.0 * a * a if a <= 3.0 else 1.0), None, None
+
+    out = gen.scale_to(10.0, 1.0, 50.0, c_of)
+    assert out.reached and out.evals <= 5
+    assert abs(out.a - 5.0**0.5) < 0.01 * 5.0**0.5
+
+
+def test_amplitude_search_on_a_linear_concealment_takes_the_linear_guess() -> None:
+    out = gen.scale_to(5.0, 0.1, 10.0, lambda a: (3.0 * a, None, None))
+    assert out.reached and out.evals == 2 and abs(out.a - 5.0 / 3.0) < 1e-12

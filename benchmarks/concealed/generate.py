@@ -28,11 +28,13 @@ two differ the linearisation was wrong: measured at the c_ee = 5 amplitudes of t
 committed run, asymmetric friction (dFc = 995 N) leaves 29.9 σ_x after the refit, while a
 Gaussian Stribeck drop (A = 917 N) leaves 3.2 and the presliding lag (A = 586 N) 6.3.
 ``c_refit_ee(a)`` is not monotone in the amplitude for effects the base's own nonlinear
-parameters can follow (a Stribeck drop of another shape: vs and Fs move), so the secant
-may stop short; such cases are flagged ``reached = false``. All are recorded. The amplitude is
-found by secant iterations on ``c(a)`` (nearly linear in a). The raw signature is reported
-as ``rms(s)/σ_x`` (below 1: nothing shows by eye in x; effects the base absorbs by moving
-its parameters far need raw signatures of hundreds of σ_x), and, as a check of the
+parameters can follow (a Stribeck drop of another shape: vs and Fs move), so the secant is
+kept inside the smallest amplitude interval where c crosses the target once it has seen one
+(quadratic drag on its 1 s plant: c = 11.5 at Cd = 922, 4.2 at Cd = 3269); where no
+evaluation reaches the target the case is flagged ``reached = false``. All are recorded. The
+amplitude is found by secant iterations on ``c(a)`` (nearly linear in a). The raw signature
+is reported as ``rms(s)/σ_x`` (below 1: nothing shows by eye in x; effects the base absorbs
+by moving its parameters far need raw signatures of hundreds of σ_x), and, as a check of the
 linearisation behind c, ``concealment_refit`` (:func:`refit_check`, an upper bound). The
 levels of one effect and replicate share plant and shape and differ in amplitude only.
 
@@ -65,6 +67,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -663,11 +666,25 @@ class Scaled(NamedTuple):
     reached: bool
 
 
+def _bracket(
+    pts: Sequence[tuple[float, float]], target: float
+) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+    """The smallest-amplitude pair of neighbouring evaluations (a, c), sorted by a, whose c
+    straddle ``target`` (below, above), or (None, None)."""
+    ordered = sorted(pts)
+    for lo, hi in itertools.pairwise(ordered):
+        if lo[1] < target < hi[1]:
+            return lo, hi
+    return None, None
+
+
 def scale_to(target: float, a0: float, a_max: float, c_of: Callable[[float], tuple]) -> Scaled:
     """Secant iterations on ``c(a) = target`` from ``(0, 0)`` and ``a0``, a ∈ (0, a_max].
 
     ``c_of(a)`` returns (c, s, x_effect). The first step is the linear guess a0·target/c(a0);
-    later ones the secant through the last two evaluations, clipped to (0, a_max].
+    later ones the secant through the last two evaluations, clipped to (0, a_max] — unless
+    the evaluations already bracket the target and the secant step leaves the
+    smallest-amplitude bracket: then regula falsi inside it (:func:`_bracket`).
     """
     pts: list[tuple[float, float]] = [(0.0, 0.0)]
     a = a0
@@ -681,9 +698,15 @@ def scale_to(target: float, a0: float, a_max: float, c_of: Callable[[float], tup
             return cand
         pts.append((a, c))
         (a1, c1), (a2, c2) = pts[-2], pts[-1]
-        if c2 == c1:
+        a_next = math.nan if c2 == c1 else a2 + (target - c2) * (a2 - a1) / (c2 - c1)
+        lo, hi = _bracket(pts, target)
+        if lo is not None and hi is not None and not lo[0] < a_next < hi[0]:
+            # c(a) is not monotone for effects the base's nonlinear parameters follow: a
+            # secant step may leave the smallest amplitude interval where c crosses the
+            # target and never come back; regula falsi inside that interval cannot
+            a_next = lo[0] + (target - lo[1]) * (hi[0] - lo[0]) / (hi[1] - lo[1])
+        elif c2 == c1:
             break
-        a_next = a2 + (target - c2) * (a2 - a1) / (c2 - c1)
         if not math.isfinite(a_next) or a_next <= 0:
             a_next = 0.5 * a2
         if a_next > a_max:
