@@ -599,6 +599,35 @@ def report(
         _table(head, body),
         "",
     ]
+    durations = sorted({r["duration"] for r in scored})
+    if len(durations) > 1:
+        len_body = []
+        for d in durations:
+            cells = [f"{d:g} s"]
+            for lv in levels:
+                rs = [r for r in eff_rows if r["duration"] == d and r["level"] == lv]
+                n = len(rs)
+                cells.append(
+                    f"{_pct(sum(r['detected'] for r in rs), n)} · "
+                    f"{_pct(sum(r['top1'] for r in rs), n)}"
+                    if n
+                    else "–"
+                )
+            ns = [r for r in nulls if r["duration"] == d]
+            cells.append(_pct(sum(r["detected"] for r in ns), len(ns)) if ns else "–")
+            len_body.append(cells)
+        lines += [
+            "## Per record length",
+            "",
+            "detected · top-1 over all effects at their level, and false discoveries on the "
+            "nulls of that length.",
+            "",
+            _table(
+                ["length"] + [f"c = {lv:g}" for lv in levels] + ["nulls: false discoveries"],
+                len_body,
+            ),
+            "",
+        ]
     if off:
         lines += [
             "Cases NOT at their level (the target c could not be reached: the base model "
