@@ -427,6 +427,19 @@ def _pct(k: int, n: int) -> str:
     return f"{k}/{n} ({100.0 * k / n:.0f} %)" if n else "–"
 
 
+def _rates(
+    rows: Sequence[dict[str, Any]],
+    keys: Sequence[str] = ("detected", "top1", "named_any"),
+    pct: bool = True,
+) -> str:
+    """``k/n`` (with percent when ``pct``) of each boolean key over ``rows``, " · "-joined."""
+    n = len(rows)
+    if not n:
+        return "–"
+    counts = [sum(r[k] for r in rows) for k in keys]
+    return " · ".join(_pct(k, n) if pct else f"{k}/{n}" for k in counts)
+
+
 def _g(v: Any, fmt: str = ".3g") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
@@ -571,23 +584,13 @@ def report(
     for e in effects:
         cells = [e]
         for lv in levels:
-            rs = [r for r in eff_rows if r["effect"] == e and r["level"] == lv]
-            n = len(rs)
             cells.append(
-                f"{sum(r['detected'] for r in rs)}/{n} · {sum(r['top1'] for r in rs)}/{n} · "
-                f"{sum(r['named_any'] for r in rs)}/{n}"
-                if n
-                else "–"
+                _rates([r for r in eff_rows if r["effect"] == e and r["level"] == lv], pct=False)
             )
         body.append(cells)
     lv_cells = ["**all effects**"]
     for lv in levels:
-        rs = [r for r in eff_rows if r["level"] == lv]
-        n = len(rs)
-        lv_cells.append(
-            f"{_pct(sum(r['detected'] for r in rs), n)} · {_pct(sum(r['top1'] for r in rs), n)}"
-            f" · {_pct(sum(r['named_any'] for r in rs), n)}"
-        )
+        lv_cells.append(_rates([r for r in eff_rows if r["level"] == lv]))
     body.append(lv_cells)
     lines += [
         "## Detection and naming per effect and concealment",
@@ -606,13 +609,7 @@ def report(
             cells = [f"{d:g} s"]
             for lv in levels:
                 rs = [r for r in eff_rows if r["duration"] == d and r["level"] == lv]
-                n = len(rs)
-                cells.append(
-                    f"{_pct(sum(r['detected'] for r in rs), n)} · "
-                    f"{_pct(sum(r['top1'] for r in rs), n)}"
-                    if n
-                    else "–"
-                )
+                cells.append(_rates(rs, keys=("detected", "top1")))
             ns = [r for r in nulls if r["duration"] == d]
             cells.append(_pct(sum(r["detected"] for r in ns), len(ns)) if ns else "–")
             len_body.append(cells)
