@@ -1,16 +1,15 @@
 """Whitening of equation-error residuals: the space every diagnosis statistic lives in.
 
 Noise model. White noise ``e`` (std σ_x [m]) on the displacement reaches the equation-error
-residual ``r = m·a − F*(t, x, v)`` (seed eq. 5/11, ``F* = drive − F_f``) through the
-preprocessing (:func:`fricjax.data.preprocess.derivatives`), which is linear in x:
-``v = L_v x``, ``a = L_a x``. Linearising the friction in v (damping ``c = mean ∂F_f/∂v``
-[N·s/m]; friction enters r with a plus sign),
+residual ``r = m·a − F*(t, x, v)`` (seed eq. 5/11) through the preprocessing
+(:func:`fricjax.data.preprocess.derivatives`), which is linear in x: ``v = L_v x``,
+``a = L_a x``. Linearising the model force in v (damping ``c = mean ∂F_f/∂v`` [N·s/m]),
 
-    r_noise ≈ K·e,      K = m·L_a + c·L_v          [N per m],  shape [n, n + 2·trim],
+    r_noise ≈ K·e,      K = m·L_a − c·L_v          [N per m],  shape [n, n + 2·trim],
 
 and away from the record ends K is a convolution with frequency response
 
-    H(f) = m·H_a(f) + c·H_v(f)      [N/m]          (H_a ≈ −(2πf)², H_v ≈ i·2πf in the pass band).
+    H(f) = m·H_a(f) − c·H_v(f)      [N/m]          (H_a ≈ −(2πf)², H_v ≈ i·2πf in the pass band).
 
 Whitened vector (``z = W·y``, shape [M], unit metres). With ``Y_k`` the rfft of y [n] and
 ``keep`` the kept bins,
@@ -331,7 +330,7 @@ def make_whitener(
     dt = float((t[-1] - t[0]) / (n - 1))
 
     g_v, g_a = _kernels(settings, dt)
-    g = m * g_a + c * g_v
+    g = m * g_a - c * g_v
     H = np.fft.rfft(_wrap(g, n))
     freqs = np.fft.rfftfreq(n, dt)
     f_stop = stop_band_hz(settings, dt)
@@ -467,7 +466,7 @@ def _edge_correction(
     n_full = n + 2 * trim
     rows, cols, Lv_R, La_R = _edge_probe(settings, wh.dt, n)
     K_R = np.zeros((rows.size, n_full))
-    K_R[:, cols] = m * La_R + c * Lv_R
+    K_R[:, cols] = m * La_R - c * Lv_R
 
     # Circulant rows: response at window row i to window column j' is gw[(i − j') mod n].
     gw = _wrap(g, n)
