@@ -133,6 +133,12 @@ class Problem:
         t, x, v, a, u: float64 arrays [n]: time [s], position [m], velocity [m/s],
             acceleration [m/s²], drive input [u_unit] (zeros when the rig records none).
         name: recording name; checksum: recording sha256; source: recording path.
+        preprocess: the settings that made v and a from x (None: not known).
+        window: ``(offset, n_parent)`` when these samples are the rows ``offset …
+            offset + n − 1`` of a longer preprocessed record of ``n_parent`` samples (a
+            held-out split): the noise of v and a at a cut end comes from samples beyond
+            it, not from the record's end padding, and the whitener must know which.
+            ``None``: the samples are a whole preprocessed record.
     """
 
     model: Model
@@ -146,6 +152,7 @@ class Problem:
     checksum: str = ""
     source: str = ""
     preprocess: PreprocessSettings | None = None
+    window: tuple[int, int] | None = None
 
     @property
     def n(self) -> int:

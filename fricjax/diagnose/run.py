@@ -151,9 +151,19 @@ def simulation_error(problem: Problem, model: Model, spec: ParamSpec, theta: np.
 
 
 def _split(problem: Problem, start: int, stop: int) -> Problem:
+    """Samples ``start … stop − 1`` of the preprocessed record, remembering where they lie in
+    it (:attr:`Problem.window`): their noise continues across a cut end, and the whitener of
+    the part treats a cut end as such, not as a record end."""
     sl = slice(start, stop)
+    offset, n_parent = problem.window or (0, problem.n)
     return replace(
-        problem, t=problem.t[sl], x=problem.x[sl], v=problem.v[sl], a=problem.a[sl], u=problem.u[sl]
+        problem,
+        t=problem.t[sl],
+        x=problem.x[sl],
+        v=problem.v[sl],
+        a=problem.a[sl],
+        u=problem.u[sl],
+        window=(offset + start, n_parent),
     )
 
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -41,16 +44,19 @@ def bare_problem(n: int, settings: PreprocessSettings) -> Problem:
     return Problem(PAPER_MODEL, spec, t, zero, zero, zero, zero, preprocess=settings)
 
 
-def operator(settings: PreprocessSettings, n_full: int, c: float) -> np.ndarray:
-    """K = m·L_a − c·L_v [n, n_full], column by column from derivatives() on impulses."""
+def impulse_columns(
+    settings: PreprocessSettings, n_full: int, column: Callable[[Any], np.ndarray]
+) -> np.ndarray:
+    """[n, n_full]: ``column(derivatives(e_j))`` for every unit impulse e_j of x."""
     t = np.arange(n_full) * DT
-    cols = []
-    for j in range(n_full):
-        e = np.zeros(n_full)
-        e[j] = 1.0
-        d = derivatives(t, e, settings)
-        cols.append(MASS * d.a - c * d.v)
-    return np.stack(cols, axis=1)
+    return np.stack(
+        [np.asarray(column(derivatives(t, e, settings))) for e in np.eye(n_full)], axis=1
+    )
+
+
+def operator(settings: PreprocessSettings, n_full: int, c: float) -> np.ndarray:
+    """K = m·L_a + c·L_v [n, n_full], column by column from derivatives() on impulses."""
+    return impulse_columns(settings, n_full, lambda d: MASS * d.a + c * d.v)
 
 
 def test_noise_response_is_the_composed_filter() -> None:
@@ -102,6 +108,56 @@ def test_whitened_noise_covariance_is_exactly_identity(
     assert np.max(np.diag(Z0 @ Z0.T)) > 10.0
 
 
+def test_the_noise_model_has_the_residuals_own_sign_of_damping() -> None:
+    # r = m·a − (drive − F_f): velocity noise enters r through +∂F_f/∂v. Build K column by
+    # column from the MODEL's residual (viscous friction only, Fv = 3750 N·s/m, so r is
+    # linear in (v, a)) on the derivatives of unit impulses: W must whiten it exactly. With
+    # the damping's sign flipped (as the whitener had it until session 4) the covariance is
+    # off by up to 0.043 (measured; the edge rows), while the interior is unchanged: the
+    # circulant part only turns each bin's (Re, Im) pair, H becoming its conjugate.
+    settings, n = PAPER, 252
+    n_full = n + 2 * settings.trim
+    base = bare_problem(n, settings)
+    named = {**PAPER_TRUTH, "Fc": 0.0, "Fs": 0.0, "F0": 0.0, "Fv": 3750.0}
+    named.update({k: 0.0 for k in named if k.startswith("Fp")})
+    theta = jnp.asarray(base.theta(named))
+    residual = jax.jit(
+        lambda v, a: base.model.residual(base.spec.unflatten(theta), base.signals._replace(v=v), a)
+    )
+    K = impulse_columns(settings, n_full, lambda d: residual(jnp.asarray(d.v), jnp.asarray(d.a)))
+    c = linear_damping(base, np.asarray(theta))
+    assert abs(c - 3750.0) < 1e-9
+    WK = make_whitener(base, damping=c)(K)
+    assert np.max(np.abs(WK @ WK.T - np.eye(WK.shape[0]))) < 1e-9
+    flipped = make_whitener(base, damping=-c)(K)
+    assert np.max(np.abs(flipped @ flipped.T - np.eye(flipped.shape[0]))) > 0.02
+
+
+@pytest.mark.parametrize(
+    ("settings", "n", "start", "stop"),
+    [
+        (PAPER, 252, 176, 252),  # the held-out last 30 % of the paper twin (shorter than K)
+        (PAPER, 252, 0, 176),  # its training part: record start, cut end
+        (PreprocessSettings(), 600, 180, 600),  # 0.6 s, Butterworth without trim
+        (PreprocessSettings(), 600, 150, 450),  # two cut ends
+    ],
+)
+def test_a_part_of_a_record_is_whitened_by_the_rows_of_its_operator(
+    settings: PreprocessSettings, n: int, start: int, stop: int
+) -> None:
+    # A held-out split keeps the preprocessing of the whole record: its noise is the rows
+    # start … stop − 1 of the whole record's K, and at a cut end those rows reach x-samples
+    # beyond the cut. The whitener of the part (Problem.window) whitens exactly them; the
+    # whitener of a record that really ends there does not.
+    c = 3750.0
+    K = operator(settings, n + 2 * settings.trim, c)[start:stop]
+    part = replace(bare_problem(stop - start, settings), window=(start, n))
+    WK = make_whitener(part, damping=c)(K)
+    assert np.max(np.abs(WK @ WK.T - np.eye(WK.shape[0]))) < 1e-9
+    ended = make_whitener(bare_problem(stop - start, settings), damping=c)(K)
+    assert np.max(np.abs(ended @ ended.T - np.eye(ended.shape[0]))) > 0.05
+
+
 def test_low_rank_correction_on_a_longer_record() -> None:
     # Savitzky–Golay, 1 s: the end rows are few (|R| = 96 < M/2), so the correction is a
     # low-rank update computed without the dense covariance, and it is still exact.
@@ -117,7 +173,7 @@ def test_low_rank_correction_on_a_longer_record() -> None:
 
 
 def test_monte_carlo_calibration_with_trim() -> None:
-    # Noise-only residuals m·a_e − c·v_e of white x-noise through derivatives() (trim = 10,
+    # Noise-only residuals m·a_e + c·v_e of white x-noise through derivatives() (trim = 10,
     # configs/paper.toml): whitened entries are i.i.d. N(0, σ_x²).
     n_full, c, draws = 272, 3750.0, 600
     wh = make_whitener(bare_problem(n_full - 20, PAPER), damping=c)
@@ -126,7 +182,7 @@ def test_monte_carlo_calibration_with_trim() -> None:
     R = np.empty((n_full - 20, draws))
     for j in range(draws):
         d = derivatives(t, rng.normal(0.0, SIGMA_X, n_full), PAPER)
-        R[:, j] = MASS * d.a - c * d.v
+        R[:, j] = MASS * d.a + c * d.v
     Z = wh(R) / SIGMA_X
     ratio = float(np.mean(Z**2))
     assert abs(ratio - 1.0) < 4 * math.sqrt(2.0 / Z.size)  # measured 0.997 (M = 54)
