@@ -7,6 +7,11 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
 * Score (Lagrange-multiplier) test of a candidate at its null: with ``G(θ_nl) = ∂r/∂β`` at
   β = 0 (jax.jacfwd, vmapped over a grid of the candidate's shape parameters θ_nl), whitened
   and projected off the whitened base Jacobian, ``S(θ_nl) = rᵀP_G r / σ̂²`` ~ χ²_k under H0.
+  Each projected score is first centred on its mean under H0, which is not zero because
+  the regressors are evaluated on the same noisy signals as the residual
+  (:mod:`fricjax.diagnose.errors_in_variables`; skipped when the model holds a stateful
+  term, whose columns are not sample by sample), where that lowers the statistic: the
+  estimated mean is itself noisy, so it may remove a finding but never make one.
   The family statistic is ``max_θ S``; its p-value comes from a Monte Carlo of the same max
   under H0 (the look-elsewhere effect over the grid is thus calibrated).
 * The best few candidates are refitted (GLS, LM on base + term); ΔBIC = BIC(base) −
@@ -27,9 +32,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.diagnose.catalogue import CATALOGUE, Candidate
+from fricjax.diagnose.catalogue import CATALOGUE, Candidate, is_stateful
+from fricjax.diagnose.errors_in_variables import (
+    ScoreBias,
+    basis_bias,
+    candidate_bias,
+    score_bias,
+)
 from fricjax.diagnose.locate import default_whitener, max_score_null, project_out, score_pvalue
-from fricjax.diagnose.whiten import Whitener, WhitenOp
+from fricjax.diagnose.whiten import Whitener, WhitenOp, robust_sigma
 from fricjax.model.system import Model
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
@@ -146,8 +157,11 @@ def candidate_columns(
     theta: np.ndarray,
     cand: Candidate,
     wh: Whitener,
-) -> tuple[np.ndarray, list[dict[str, float]], ParamSpec, Model]:
-    """Whitened regressor columns ``W·∂r/∂β`` at β = 0 for every grid point: [G, M, k]."""
+    bias: ScoreBias | None = None,
+) -> tuple[np.ndarray, list[dict[str, float]], ParamSpec, Model, np.ndarray]:
+    """Whitened regressor columns ``W·∂r/∂β`` at β = 0 for every grid point: [G, M, k],
+    and their errors-in-variables biases ``E[colᵀ·P⊥·z]`` [G, k] (zeros without ``bias``;
+    :mod:`fricjax.diagnose.errors_in_variables`)."""
     model_e, spec_e = cand.extend(model, spec, problem)
     d = spec.n_free
     n_lin = len(cand.linear_params(problem))
@@ -164,11 +178,19 @@ def candidate_columns(
     # free vector of the extended spec: base free params (same order), then the candidate's
     # free params; mass_error frees the base mass instead (no new term).
     extra_free = [q.name for q in spec_e.free if q.name not in spec.free_names]
-    cols = _columns(
-        wres, base, jnp.asarray(nl), _layout(spec, spec_e, extra_free, names_nl, n_lin, d)
-    )
+    layout = _layout(spec, spec_e, extra_free, names_nl, n_lin, d)
+    cols = np.asarray(_columns(wres, base, jnp.asarray(nl), layout))
     points = [dict(zip(names_nl, map(float, row), strict=True)) for row in nl]
-    return np.asarray(cols), points, spec_e, model_e
+    if bias is None:
+        col_bias = np.zeros((cols.shape[0], cols.shape[2]))
+    else:
+        own = None
+        if not any(is_stateful(term) for term in model_e.terms):
+            own = np.asarray(
+                _own_parts(wres.residual, base, jnp.asarray(nl), layout, jnp.asarray(bias.kappa))
+            )
+        col_bias = candidate_bias(bias, cols, own)
+    return cols, points, spec_e, model_e, col_bias
 
 
 def _layout(
@@ -191,21 +213,46 @@ def _layout(
     return base_slots, lin_slots, nl_slots, lin_at
 
 
-@eqx.filter_jit
-def _columns(wres: Any, base: Array, nl: Array, layout: tuple) -> Array:
+def _theta_e(layout: tuple, base: Array, beta: Array, nl_row: Array) -> Array:
+    """The extended free vector: base values, the candidate's linear parameters at
+    ``beta`` (+ the base's value for a freed parameter), its nonlinear ones at ``nl_row``."""
     base_slots, lin_slots, nl_slots, lin_at = layout
     d_e = len(base_slots) + len(lin_slots) + len(nl_slots)
+    th = jnp.zeros(d_e, dtype=jnp.float64)
+    th = th.at[jnp.asarray(base_slots, dtype=int)].set(base)
+    th = th.at[jnp.asarray(lin_slots, dtype=int)].set(beta + jnp.asarray(lin_at))
+    if nl_slots:
+        th = th.at[jnp.asarray(nl_slots, dtype=int)].set(nl_row)
+    return th
+
+
+@eqx.filter_jit
+def _columns(wres: Any, base: Array, nl: Array, layout: tuple) -> Array:
+    n_lin = len(layout[1])
 
     def one(nl_row: Array) -> Array:
-        def of_beta(beta: Array) -> Array:
-            th = jnp.zeros(d_e, dtype=jnp.float64)
-            th = th.at[jnp.asarray(base_slots, dtype=int)].set(base)
-            th = th.at[jnp.asarray(lin_slots, dtype=int)].set(beta + jnp.asarray(lin_at))
-            if nl_slots:
-                th = th.at[jnp.asarray(nl_slots, dtype=int)].set(nl_row)
-            return wres(th)
+        return jax.jacfwd(lambda beta: wres(_theta_e(layout, base, beta, nl_row)))(
+            jnp.zeros(n_lin, dtype=jnp.float64)
+        )
 
-        return jax.jacfwd(of_beta)(jnp.zeros(len(lin_slots), dtype=jnp.float64))
+    return jax.vmap(one)(nl)
+
+
+@eqx.filter_jit
+def _own_parts(res_e: EquationError, base: Array, nl: Array, layout: tuple, kappa: Array) -> Array:
+    """``Σ_s Σ_i κ_s,i·∂j_c,i/∂s_i`` [G, k] for the unwhitened candidate columns
+    (:mod:`fricjax.diagnose.errors_in_variables`): sample by sample, one jvp along κ."""
+    n_lin = len(layout[1])
+
+    def one(nl_row: Array) -> Array:
+        def column(x: Array, v: Array, a: Array) -> Array:
+            res = eqx.tree_at(lambda e: (e.x, e.v, e.a), res_e, (x, v, a))
+            return jax.jacfwd(lambda beta: res(_theta_e(layout, base, beta, nl_row)))(
+                jnp.zeros(n_lin, dtype=jnp.float64)
+            )
+
+        _, tangent = jax.jvp(column, (res_e.x, res_e.v, res_e.a), tuple(kappa))
+        return jnp.sum(tangent, axis=0)
 
     return jax.vmap(one)(nl)
 
@@ -224,19 +271,34 @@ def score_candidate(
     n_mc: int,
     seed: int,
     dof: int,
+    bias: ScoreBias | None = None,
 ) -> Score:
-    """Max-over-grid score test of ``cand``, calibrated by Monte Carlo."""
-    cols, points, _, _ = candidate_columns(problem, model, spec, theta, cand, wh)
+    """Max-over-grid score test of ``cand``, calibrated by Monte Carlo; with ``bias`` each
+    score is centred on its errors-in-variables mean under H0 first
+    (:mod:`fricjax.diagnose.errors_in_variables`)."""
+    cols, points, _, _, col_bias = candidate_columns(problem, model, spec, theta, cand, wh, bias)
     g, m, k = cols.shape
     perp = cols - np.einsum("mj,gjk->gmk", q_base, np.einsum("mj,gmk->gjk", q_base, cols))
     stats = np.empty(g)
     bases = []
+    shifts = []
     for i in range(g):  # G ≲ 400 small QRs; the heavy part (columns) is one vmapped call
         q, rr = np.linalg.qr(perp[i])
         ok = np.abs(np.diag(rr)) > 1e-10 * max(1.0, float(np.abs(rr).max()))
         q = q[:, ok]
         bases.append(q)
-        stats[i] = float(np.sum((q.T @ r_perp) ** 2) / sigma2) if q.shape[1] else 0.0
+        u = q.T @ r_perp
+        shift = np.zeros(q.shape[1])
+        if bias is not None and q.shape[1]:
+            # The score's mean under H0 is not zero when the regressors carry the noise.
+            # Its estimate is one draw of a noisy derivative: where the fitted friction
+            # turns sharply (vs at its bound) it can be off by several σ, so it is used
+            # only where it lowers the statistic: never a finding made by the correction.
+            centred = basis_bias(perp[i], q, col_bias[i])
+            if np.sum((u - centred) ** 2) < np.sum(u**2):
+                shift = centred
+        shifts.append(shift)
+        stats[i] = float(np.sum((u - shift) ** 2) / sigma2) if q.shape[1] else 0.0
     best = int(np.argmax(stats))
     # the Monte Carlo noise must live where the whitened noise lives: off the base Jacobian
     # and off the excluded samples (wh.N), with the same degrees of freedom
@@ -250,7 +312,7 @@ def score_candidate(
     q = bases[best]
     direction = q[:, 0] if q.shape[1] else np.zeros(m)
     if q.shape[1]:  # the column of the basis most aligned with the residual
-        proj = q.T @ r_perp
+        proj = q.T @ r_perp - shifts[best]
         direction = q @ proj / max(np.linalg.norm(proj), 1e-300)
     return Score(cand.effect, float(stats[best]), p, points[best], direction, k)
 
@@ -336,9 +398,12 @@ def forward_select(
     n_mc: int = 2000,
     seed: int = 0,
     noise: str = "auto",
+    eiv: bool = True,
 ) -> Selection:
     """Add catalogue terms one at a time while they keep paying (module docstring);
-    ``noise``: the noise model of :func:`~fricjax.diagnose.locate.default_whitener`."""
+    ``noise``: the noise model of :func:`~fricjax.diagnose.locate.default_whitener`;
+    ``eiv``: centre the scores on their errors-in-variables bias
+    (:mod:`fricjax.diagnose.errors_in_variables`; no effect under spectral noise)."""
     model, spec = problem.model, problem.spec
     wh = default_whitener(problem, theta, noise)
     theta, rss = gls_fit(problem, model, spec, theta, wh)
@@ -356,6 +421,11 @@ def forward_select(
         dof = max(wh.dof - q_base.shape[1], 1)
         sigma2 = float(r_perp @ r_perp / dof)
         bic_base = bic(float(r_w @ r_w), wh.dof, spec.n_free)
+        bias = (
+            score_bias(problem, model, spec, theta, wh, robust_sigma(wh, r_w) ** 2)
+            if eiv and not any(is_stateful(term) for term in model.terms)
+            else None
+        )
         pool = [cd for cd in candidates if cd.effect not in used and cd.applicable(model, spec)]
         if not pool:
             break
@@ -373,6 +443,7 @@ def forward_select(
                 n_mc=n_mc,
                 seed=seed + i,
                 dof=dof,
+                bias=bias,
             )
             for i, cd in enumerate(pool)
         ]

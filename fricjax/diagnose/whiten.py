@@ -75,12 +75,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+from scipy import sparse
 from scipy.stats import chi2
 
 from fricjax.data.preprocess import PreprocessSettings, derivatives, noise_gains
@@ -490,6 +492,38 @@ def _operator_rows(
         if hit is not None:
             K[k, p_cols] = m * La[hit] + c * Lv[hit]
     return K
+
+
+def noise_operators(settings: PreprocessSettings, dt: float, n: int) -> tuple[Any, Any]:
+    """``(L_v, L_a)``: the preprocessing's exact linear maps from the raw x [n + 2·trim] to
+    the kept v [n] [1/s] and a [n] [1/s²], as scipy CSR matrices [n, n + 2·trim].
+
+    Banded: the stationary kernel (:func:`_kernels`, cut at 1e-13 of its peak) everywhere
+    except the end rows, which are the measured rows of :func:`_edge_probe`."""
+    trim = settings.trim
+    n_full = n + 2 * trim
+    g_v, g_a = _kernels(settings, dt)
+    reach = (g_v.shape[0] - 1) // 2
+    p_rows, p_cols, Lv_p, La_p = _edge_probe(settings, dt, n)
+    probed = np.zeros(n, dtype=bool)
+    probed[p_rows] = True
+    lags = np.arange(-reach, reach + 1)
+    rows = np.repeat(np.flatnonzero(~probed), lags.size)
+    cols = rows + trim - np.tile(lags, int((~probed).sum()))
+    kern = np.tile(lags + reach, int((~probed).sum()))
+    ok = (cols >= 0) & (cols < n_full)
+    out = []
+    for g, dense in ((g_v, Lv_p), (g_a, La_p)):
+        pr, pc = np.nonzero(dense)
+        mat = sparse.coo_matrix(
+            (
+                np.concatenate([g[kern[ok]], dense[pr, pc]]),
+                (np.concatenate([rows[ok], p_rows[pr]]), np.concatenate([cols[ok], p_cols[pc]])),
+            ),
+            shape=(n, n_full),
+        )
+        out.append(mat.tocsr())
+    return out[0], out[1]
 
 
 def _edge_correction(

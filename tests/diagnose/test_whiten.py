@@ -18,6 +18,7 @@ from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH
 from fricjax.diagnose.whiten import (
     linear_damping,
     make_whitener,
+    noise_operators,
     noise_response,
     reversal_mask,
     robust_sigma,
@@ -156,6 +157,20 @@ def test_a_part_of_a_record_is_whitened_by_the_rows_of_its_operator(
     assert np.max(np.abs(WK @ WK.T - np.eye(WK.shape[0]))) < 1e-9
     ended = make_whitener(bare_problem(stop - start, settings), damping=c)(K)
     assert np.max(np.abs(ended @ ended.T - np.eye(ended.shape[0]))) > 0.05
+
+
+@pytest.mark.parametrize(
+    ("settings", "n"), [(PAPER, 252), (PreprocessSettings(method="savgol", trim=10), 300)]
+)
+def test_noise_operators_are_the_preprocessing_on_impulses(
+    settings: PreprocessSettings, n: int
+) -> None:
+    # L_v, L_a as sparse matrices: banded stationary kernel plus the measured end rows.
+    L_v, L_a = noise_operators(settings, DT, n)
+    n_full = n + 2 * settings.trim
+    assert np.max(np.abs(L_v.toarray() - impulse_columns(settings, n_full, lambda d: d.v))) < 1e-9
+    dense_a = impulse_columns(settings, n_full, lambda d: d.a)
+    assert np.max(np.abs(L_a.toarray() - dense_a)) < 1e-9 * np.abs(dense_a).max()
 
 
 def test_low_rank_correction_on_a_longer_record() -> None:
