@@ -134,7 +134,16 @@ def score_bias(
         pinv_t = np.zeros((wh.M, 0))
     PW = W - Q @ (Q.T @ W)
     kappa = np.stack([np.einsum("im,mi->i", c, PW) for c in C])
-    D = np.asarray(signal_jacobians(res, th))
+    D = np.array(signal_jacobians(res, th))  # a writable copy
+    # A stateful term's columns depend on the signals' past, not sample by sample: taken
+    # as noise-free (the other columns, additive to it, stay exact).
+    stateful = {
+        q.name
+        for term in model.terms
+        if getattr(term, "stateful", False)
+        for q in term.parameters()
+    }
+    D[:, :, [i for i, name in enumerate(spec.free_names) if name in stateful]] = 0.0
     h = sum(np.sum(D[s] * (C[s] @ pinv_t), axis=1) for s in range(3))
     psi = pinv_t @ sum(D[s].T @ kappa[s] for s in range(3))
     vec = PW @ h + psi

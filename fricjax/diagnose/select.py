@@ -9,8 +9,8 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
   and projected off the whitened base Jacobian, ``S(θ_nl) = rᵀP_G r / σ̂²`` ~ χ²_k under H0.
   Each projected score is first centred on its mean under H0, which is not zero because
   the regressors are evaluated on the same noisy signals as the residual
-  (:mod:`fricjax.diagnose.errors_in_variables`; skipped when the model holds a stateful
-  term, whose columns are not sample by sample), where that lowers the statistic: the
+  (:mod:`fricjax.diagnose.errors_in_variables`; a stateful term's columns, which are not
+  sample by sample, are taken as noise-free), where that lowers the statistic: the
   estimated mean is itself noisy, so it may remove a finding but never make one.
   The family statistic is ``max_θ S``; its p-value comes from a Monte Carlo of the same max
   under H0 (the look-elsewhere effect over the grid is thus calibrated).
@@ -185,7 +185,8 @@ def candidate_columns(
         col_bias = np.zeros((cols.shape[0], cols.shape[2]))
     else:
         own = None
-        if not any(is_stateful(term) for term in model_e.terms):
+        term = cand.term(problem)
+        if term is None or not is_stateful(term):
             own = np.asarray(
                 _own_parts(wres.residual, base, jnp.asarray(nl), layout, jnp.asarray(bias.kappa))
             )
@@ -422,9 +423,7 @@ def forward_select(
         sigma2 = float(r_perp @ r_perp / dof)
         bic_base = bic(float(r_w @ r_w), wh.dof, spec.n_free)
         bias = (
-            score_bias(problem, model, spec, theta, wh, robust_sigma(wh, r_w) ** 2)
-            if eiv and not any(is_stateful(term) for term in model.terms)
-            else None
+            score_bias(problem, model, spec, theta, wh, robust_sigma(wh, r_w) ** 2) if eiv else None
         )
         pool = [cd for cd in candidates if cd.effect not in used and cd.applicable(model, spec)]
         if not pool:
