@@ -42,7 +42,8 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy import sparse
 
-from fricjax.diagnose.whiten import Whitener, noise_operators
+from fricjax.diagnose.catalogue import is_stateful
+from fricjax.diagnose.whiten import Whitener, friction_slope, noise_operators
 from fricjax.model.system import Model
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
@@ -73,25 +74,28 @@ def equation_error(problem: Problem, model: Model, spec: ParamSpec) -> EquationE
     )
 
 
-def _with_signals(res: EquationError, x: Array, v: Array, a: Array) -> EquationError:
+def with_signals(res: EquationError, x: Array, v: Array, a: Array) -> EquationError:
+    """The same residual module on other signals x, v, a [n] (to differentiate in them)."""
     return eqx.tree_at(lambda e: (e.x, e.v, e.a), res, (x, v, a))
 
 
 @eqx.filter_jit
-def signal_jacobians(res: EquationError, theta: Array) -> Float[Array, "3 n d"]:
-    """``D_s = ∂(∂r/∂θ)/∂s`` sample by sample, for s = x, v, a: [3, n, d]."""
+def signal_jacobians(res: EquationError, theta: Array) -> tuple[Array, Array]:
+    """``(J [n, d], D [3, n, d])``: ``J = ∂r/∂θ`` and ``D_s = ∂J/∂s`` sample by sample, for
+    s = x, v, a (J is the primal of the same jvp)."""
 
     def jac(x: Array, v: Array, a: Array) -> Array:
-        return jax.jacfwd(_with_signals(res, x, v, a))(theta)
+        return jax.jacfwd(with_signals(res, x, v, a))(theta)
 
     primals = (res.x, res.v, res.a)
     eye = jnp.eye(3, dtype=res.v.dtype)
 
-    def along(k: Array) -> Array:
+    def along(k: Array) -> tuple[Array, Array]:
         tangents = tuple(eye[k, i] * jnp.ones_like(res.v) for i in range(3))
-        return jax.jvp(jac, primals, tangents)[1]
+        return jax.jvp(jac, primals, tangents)
 
-    return jax.vmap(along)(jnp.arange(3))
+    J, D = jax.vmap(along)(jnp.arange(3))
+    return J[0], D
 
 
 def score_bias(
@@ -112,18 +116,15 @@ def score_bias(
     L_v, L_a = noise_operators(settings, wh.dt, n)
     res = equation_error(problem, model, spec)
     th = jnp.asarray(theta, dtype=jnp.float64)
-    p = spec.unflatten(th)
-    sig = problem.signals
-    _, slope = jax.jvp(
-        lambda v: model.friction(p, sig._replace(v=v)), (sig.v,), (jnp.ones_like(sig.v),)
-    )
-    K = (L_a * wh.mass + sparse.diags(np.asarray(slope)) @ L_v).tocsr()
+    slope = friction_slope(problem, theta, model, spec)
+    K = (L_a * wh.mass + sparse.diags(slope) @ L_v).tocsr()
     W = wh(np.eye(n))  # [M, n]
     KtWt = np.asarray(K.T @ W.T)  # [n_full, M]
     trim = settings.trim
     C = [KtWt[trim : trim + n], np.asarray(L_v @ KtWt), np.asarray(L_a @ KtWt)]
-    J = np.asarray(jax.jacfwd(res)(th))
-    A = wh(J)
+    J, D = signal_jacobians(res, th)
+    D = np.array(D)  # a writable copy
+    A = wh(np.asarray(J))
     if A.shape[1]:
         U, sv, Vt = np.linalg.svd(A, full_matrices=False)
         ok = sv > 1e-10 * sv[0]
@@ -134,15 +135,9 @@ def score_bias(
         pinv_t = np.zeros((wh.M, 0))
     PW = W - Q @ (Q.T @ W)
     kappa = np.stack([np.einsum("im,mi->i", c, PW) for c in C])
-    D = np.array(signal_jacobians(res, th))  # a writable copy
     # A stateful term's columns depend on the signals' past, not sample by sample: taken
     # as noise-free (the other columns, additive to it, stay exact).
-    stateful = {
-        q.name
-        for term in model.terms
-        if getattr(term, "stateful", False)
-        for q in term.parameters()
-    }
+    stateful = {q.name for term in model.terms if is_stateful(term) for q in term.parameters()}
     D[:, :, [i for i, name in enumerate(spec.free_names) if name in stateful]] = 0.0
     h = sum(np.sum(D[s] * (C[s] @ pinv_t), axis=1) for s in range(3))
     psi = pinv_t @ sum(D[s].T @ kappa[s] for s in range(3))

@@ -37,7 +37,9 @@ from fricjax.diagnose.errors_in_variables import (
     ScoreBias,
     basis_bias,
     candidate_bias,
+    equation_error,
     score_bias,
+    with_signals,
 )
 from fricjax.diagnose.locate import default_whitener, max_score_null, project_out, score_pvalue
 from fricjax.diagnose.whiten import Whitener, WhitenOp, robust_sigma
@@ -117,12 +119,7 @@ class WhitenedResidual(eqx.Module):
 def whitened_residual(
     problem: Problem, model: Model, spec: ParamSpec, wh: Whitener
 ) -> WhitenedResidual:
-    res = EquationError(
-        model,
-        spec.structural(),
-        *(jnp.asarray(a) for a in (problem.t, problem.x, problem.v, problem.u, problem.a)),
-    )
-    return WhitenedResidual(res, wh.module)
+    return WhitenedResidual(equation_error(problem, model, spec), wh.module)
 
 
 # -- helpers -------------------------------------------------------------------------------
@@ -247,7 +244,7 @@ def _own_parts(res_e: EquationError, base: Array, nl: Array, layout: tuple, kapp
 
     def one(nl_row: Array) -> Array:
         def column(x: Array, v: Array, a: Array) -> Array:
-            res = eqx.tree_at(lambda e: (e.x, e.v, e.a), res_e, (x, v, a))
+            res = with_signals(res_e, x, v, a)
             return jax.jacfwd(lambda beta: res(_theta_e(layout, base, beta, nl_row)))(
                 jnp.zeros(n_lin, dtype=jnp.float64)
             )

@@ -470,36 +470,14 @@ def _edge_probe(
     return rows, cols, Lv, La
 
 
-def _operator_rows(
-    settings: PreprocessSettings, dt: float, n_parent: int, rows: np.ndarray, m: float, c: float
-) -> np.ndarray:
-    """Rows ``rows`` (record indices) of ``K = m·L_a + c·L_v`` of a whole preprocessed record
-    of ``n_parent`` samples: [len(rows), n_parent + 2·trim] [N/m].
-
-    Rows within the end depth of :func:`_edge_probe` are its measured rows; all others are
-    the stationary kernel (row i from x-sample j: ``g[i + trim − j]``)."""
-    trim = settings.trim
-    n_full = n_parent + 2 * trim
-    g_v, g_a = _kernels(settings, dt)
-    g = m * g_a + c * g_v
-    reach = (g.shape[0] - 1) // 2
-    lag = rows[:, None] + trim - np.arange(n_full)[None, :]
-    K = np.where(np.abs(lag) <= reach, g[np.clip(lag + reach, 0, 2 * reach)], 0.0)
-    p_rows, p_cols, Lv, La = _edge_probe(settings, dt, n_parent)
-    where_row = {int(r): k for k, r in enumerate(p_rows)}
-    for k, r in enumerate(rows):
-        hit = where_row.get(int(r))
-        if hit is not None:
-            K[k, p_cols] = m * La[hit] + c * Lv[hit]
-    return K
-
-
+@lru_cache(maxsize=8)
 def noise_operators(settings: PreprocessSettings, dt: float, n: int) -> tuple[Any, Any]:
     """``(L_v, L_a)``: the preprocessing's exact linear maps from the raw x [n + 2·trim] to
     the kept v [n] [1/s] and a [n] [1/s²], as scipy CSR matrices [n, n + 2·trim].
 
     Banded: the stationary kernel (:func:`_kernels`, cut at 1e-13 of its peak) everywhere
-    except the end rows, which are the measured rows of :func:`_edge_probe`."""
+    except the end rows, which are the measured rows of :func:`_edge_probe`. Cached (the
+    whitener of a record and of its held-out parts share them); do not modify the result."""
     trim = settings.trim
     n_full = n + 2 * trim
     g_v, g_a = _kernels(settings, dt)
@@ -550,7 +528,8 @@ def _edge_correction(
     # window end (the wrap), and the parent record's measured end rows.
     depth = max(reach, end_depth)
     rows = np.unique(np.concatenate([np.arange(min(n, depth)), np.arange(max(0, n - depth), n)]))
-    K_R = _operator_rows(settings, wh.dt, n_parent, rows + offset, m, c)
+    L_v, L_a = noise_operators(settings, wh.dt, n_parent)
+    K_R = (m * L_a[rows + offset] + c * L_v[rows + offset]).toarray()
 
     # Circulant rows: response at window row i to window column j' is gw[(i − j') mod n].
     gw = _wrap(g, n)
@@ -602,17 +581,27 @@ def _norm(wh: Whitener) -> np.ndarray:
 # -- helpers for callers --------------------------------------------------------------------
 
 
-def linear_damping(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
-    """Linearised damping ``c = mean over samples of ∂F_f/∂v`` [N·s/m] of ``problem``'s
-    model at ``theta`` (jax.jvp of the friction in v; sgn(v) contributes 0 off v = 0)."""
-    p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
+def friction_slope(
+    problem: Problem, theta: Float[np.ndarray, " d"], model: Any = None, spec: Any = None
+) -> Float[np.ndarray, " n"]:
+    """``∂F_f/∂v`` [N·s/m] at every sample of ``model`` (default ``problem.model``, with
+    ``spec``) at ``theta`` (jax.jvp of the friction in v; sgn(v) contributes 0 off v = 0)."""
+    model = problem.model if model is None else model
+    spec = problem.spec if spec is None else spec
+    p = spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
     sig = problem.signals
 
     def friction_of_v(v: Array) -> Array:
-        return problem.model.friction(p, sig._replace(v=v))
+        return model.friction(p, sig._replace(v=v))
 
     _, slope = jax.jvp(friction_of_v, (sig.v,), (jnp.ones_like(sig.v),))
-    return float(np.mean(np.asarray(slope)))
+    return np.asarray(slope)
+
+
+def linear_damping(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
+    """Linearised damping ``c = mean over samples of ∂F_f/∂v`` [N·s/m] of ``problem``'s
+    model at ``theta`` (:func:`friction_slope`)."""
+    return float(np.mean(friction_slope(problem, theta)))
 
 
 def reversal_mask(
