@@ -566,10 +566,17 @@ class Candidate:
     ``local = True`` marks a candidate whose "linear" parameter is really nonlinear with an
     interior null (``stribeck_shape``): the score column ``∂r/∂β|₀`` is then a local
     (first-order) regressor; everything else treats it as linear.
+
+    ``by_refit = True`` marks a change of the friction law itself (Stribeck drop and shape,
+    direction asymmetry, quadratic drag): the base's own nonlinear friction parameters
+    (Fs, vs, Fc, Fv) bend towards it, so at the base optimum its one-step score sees little
+    of what a refit recovers, and forward selection tests it by the likelihood ratio of a
+    refit instead (:func:`fricjax.diagnose.select.forward_select`).
     """
 
     effect: str = ""
     local: ClassVar[bool] = False
+    by_refit: ClassVar[bool] = False
 
     # structure ----------------------------------------------------------------------------
     def term(self, problem: Problem) -> Term | None:
@@ -679,6 +686,7 @@ class StribeckCandidate(_TermCandidate):
     """
 
     effect: str = "stribeck"
+    by_refit: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = GaussianStribeck
 
@@ -717,6 +725,7 @@ class StribeckShapeCandidate(_TermCandidate):
     """
 
     effect: str = "stribeck_shape"
+    by_refit: ClassVar[bool] = True
     local: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = StribeckShape
@@ -756,6 +765,7 @@ class AsymmetricCandidate(_TermCandidate):
     """
 
     effect: str = "asymmetric_friction"
+    by_refit: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = AsymmetricFriction
 
@@ -790,6 +800,7 @@ class QuadraticDragCandidate(_TermCandidate):
     """``quadratic_drag``: :class:`QuadraticDrag`. Bounds Cd ∈ ±2·F_ref/max|v|²; G = 1."""
 
     effect: str = "quadratic_drag"
+    by_refit: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = QuadraticDrag
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:

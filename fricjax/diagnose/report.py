@@ -172,6 +172,7 @@ def _score_table(diag: Diagnosis) -> str:
         rows.append(
             (
                 s.effect,
+                s.test,
                 fmt(s.stat, 4),
                 f"{s.p_value:.2g}",
                 fmt(s.delta_bic_linear, 4),
@@ -179,5 +180,6 @@ def _score_table(diag: Diagnosis) -> str:
             )
         )
     return format_table(
-        rows, ("effect", "max score", "p (calibrated)", "ΔBIC (linearised)", "ΔBIC after refit")
+        rows,
+        ("effect", "test", "statistic", "p (calibrated)", "ΔBIC (linearised)", "ΔBIC after refit"),
     )

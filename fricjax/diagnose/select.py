@@ -14,6 +14,13 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
   estimated mean is itself noisy, so it may remove a finding but never make one.
   The family statistic is ``max_θ S``; its p-value comes from a Monte Carlo of the same max
   under H0 (the look-elsewhere effect over the grid is thus calibrated).
+* Changes of the friction law itself (``Candidate.by_refit``: Stribeck drop and shape,
+  asymmetry, quadratic drag) are tested by the likelihood ratio of a refit instead,
+  ``LR = (RSS_w(base) − RSS_w(base+term))/σ̂²``, calibrated by the same null as the score
+  (Wilks: under H0 LR and S agree to first order). The base's own nonlinear friction
+  parameters bend towards such a term, so the one-step score at the base optimum sees
+  little of it: on a 1 s record with hidden quadratic drag (c = 5) the score was 9.5
+  (p = 1.7e-3), the refit's LR 32.7; on five null records every such LR was ≤ 4.3.
 * The best few candidates are refitted (GLS, LM on base + term); ΔBIC = BIC(base) −
   BIC(base+term) with ``BIC = M·ln(RSS_w/M) + k·ln M``.
 * Forward selection: add the best candidate while its p-value < α / (number of candidates)
@@ -23,7 +30,7 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import equinox as eqx
@@ -60,6 +67,11 @@ class Score:
     direction: np.ndarray  # whitened, projected unit signature [M] (first principal column)
     k: int
     delta_bic_linear: float = float("nan")  # ΔBIC of a one-step (linearised) refit
+    null: np.ndarray | None = None  # Monte Carlo draws of the statistic under H0 [n_mc]
+    grid_size: int = 1  # G, the grid points the max runs over
+    rank: int = 0  # columns of the best grid point's basis (the statistic's χ² dof)
+    dof: int = 1  # residual degrees of freedom of σ̂²
+    test: str = "score"  # "score", or "likelihood ratio" (by_refit candidates)
 
 
 @dataclass
@@ -302,17 +314,45 @@ def score_candidate(
     # and off the excluded samples (wh.N), with the same degrees of freedom
     nuisance = np.hstack([q_base, wh.N]) if wh.N.shape[1] else q_base
     null = max_score_null(_pad(bases, k), n_mc, seed, J_w=nuisance, dof=dof)
-    p_mc = float((1 + np.sum(null >= stats[best])) / (1 + null.size))
-    # The Monte Carlo cannot resolve p below 1/(n_mc + 1); the Bonferroni bound over the G
-    # grid points (single-point p from the exact Beta law) is valid there and sharper.
-    p_bonf = float(g * score_pvalue(stats[best], int(bases[best].shape[1]), dof))
-    p = min(p_mc, p_bonf, 1.0)
+    rank = int(bases[best].shape[1])
+    p = calibrated_p(float(stats[best]), null, g, rank, dof)
     q = bases[best]
     direction = q[:, 0] if q.shape[1] else np.zeros(m)
     if q.shape[1]:  # the column of the basis most aligned with the residual
         proj = q.T @ r_perp - shifts[best]
         direction = q @ proj / max(np.linalg.norm(proj), 1e-300)
-    return Score(cand.effect, float(stats[best]), p, points[best], direction, k)
+    return Score(
+        cand.effect,
+        float(stats[best]),
+        p,
+        points[best],
+        direction,
+        k,
+        null=null,
+        grid_size=g,
+        rank=rank,
+        dof=dof,
+    )
+
+
+def calibrated_p(stat: float, null: np.ndarray, g: int, rank: int, dof: int) -> float:
+    """p-value of a max-over-grid statistic: the Monte Carlo ``null`` [n_mc], which cannot
+    resolve p below ``1/(n_mc + 1)``, or the Bonferroni bound over the G grid points (the
+    single-point p from the exact Beta law of a ``rank``-column score), which is valid
+    there and sharper."""
+    p_mc = float((1 + np.sum(null >= stat)) / (1 + null.size))
+    p_bonf = float(g * score_pvalue(stat, rank, dof)) if rank else 1.0
+    return min(p_mc, p_bonf, 1.0)
+
+
+def likelihood_ratio(score: Score, refit: Refit, rss_base: float, sigma2: float) -> Score:
+    """``score`` with its statistic replaced by the refit's likelihood ratio
+    ``(RSS_w(base) − RSS_w(refit))/σ̂²`` and re-calibrated by the same null (module
+    docstring): the test of a ``by_refit`` candidate."""
+    lr = max((rss_base - refit.rss_w) / sigma2, 0.0)
+    p = calibrated_p(lr, score.null, score.grid_size, max(score.rank, 1), score.dof)
+    nonlinear = {n: refit.params[n] for n in score.nonlinear if n in refit.params}
+    return replace(score, stat=float(lr), p_value=p, nonlinear=nonlinear, test="likelihood ratio")
 
 
 def _pad(bases: list[np.ndarray], k: int) -> np.ndarray:
@@ -343,6 +383,8 @@ def gls_fit(
         spec.lower,
         spec.upper,
         settings or RefineSettings(max_steps=100, rtol=1e-8, atol=1e-8),
+        # each (model, whitener) pair is fitted once or twice: compile time dominates
+        fast_compile=True,
     )
     return np.asarray(out.x), float(out.cost_after)
 
@@ -443,12 +485,19 @@ def forward_select(
             )
             for i, cd in enumerate(pool)
         ]
-        ranked = sorted(scores, key=lambda s: (s.p_value, -s.stat))
         by_name = {cd.effect: cd for cd in pool}
+        rss_base = float(r_w @ r_w)
+        done: dict[str, Refit] = {}
+        for i, sc in enumerate(scores):
+            if by_name[sc.effect].by_refit:
+                done[sc.effect] = refit_candidate(
+                    problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base
+                )
+                scores[i] = likelihood_ratio(sc, done[sc.effect], rss_base, sigma2)
+        ranked = sorted(scores, key=lambda s: (s.p_value, -s.stat))
         # Linearised ΔBIC of each candidate from its score (one Gauss-Newton step from the
         # base optimum: the whitened RSS drops by S·σ²); only the best eligible candidate
         # is refitted — a full GLS refit costs a compilation per model.
-        rss_base = float(r_w @ r_w)
         lin = {
             sc.effect: wh.dof * np.log(rss_base / max(rss_base - sc.stat * sigma2, 1e-300))
             - (sc.k + len(sc.nonlinear)) * np.log(wh.dof)
@@ -475,7 +524,8 @@ def forward_select(
         # the linearisation misjudges terms whose shape (location, width) the refit moves,
         # so the best two eligible candidates are refitted and compared by their true ΔBIC
         refits = [
-            refit_candidate(problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base)
+            done.get(sc.effect)
+            or refit_candidate(problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base)
             for sc in eligible[:n_refit]
         ]
         best = max(refits, key=lambda r: r.delta_bic)
