@@ -541,10 +541,11 @@ def forward_select(
             break
         # the linearisation misjudges terms whose shape (location, width) the refit moves,
         # so the best two eligible candidates are refitted and compared by their true ΔBIC
-        refits = [
-            done.get(sc.effect)
-            or refit_candidate(problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base)
-            for sc in eligible[:n_refit]
+        # The likelihood-ratio candidates are refitted already and compete as they are; the
+        # refit slots go to the best score-tested ones (whose ranking is linearised).
+        refits = [done[sc.effect] for sc in eligible if sc.effect in done] + [
+            refit_candidate(problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base)
+            for sc in [sc for sc in eligible if sc.effect not in done][:n_refit]
         ]
         best = max(refits, key=lambda r: r.delta_bic)
         best_score = next(sc for sc in scores if sc.effect == best.effect)
