@@ -72,13 +72,11 @@ def test_visible_effect_is_named_located_and_pays_on_held_out_data(
 
 #: Known failures on the 1 s paper twin, measured (session 3; they failed at the end of
 #: session 2 already, with the same numbers): strict, so a fix shows up as XPASS.
+#: quadratic_drag left this list in session 6 (likelihood-ratio test of friction-law terms).
 KNOWN_GAPS = {
     "asymmetric_friction": "not detected: the base fit absorbs its linearised signature "
     "(c_ee = 2.0) yet leaves c_refit = 33 noise std of broadband structure, which inflates the "
     "residual's own noise estimate sigma_hat and so hides itself",
-    "quadratic_drag": "not detected: same mechanism (c_ee = 2.5, c_refit = 30); what the "
-    "refitted base leaves is not along the term's linearised signature at the base fit "
-    "(session 4, concealed case at c_ee,refit = 11.5: its score statistic 0.48, p = 0.48)",
 }
 
 
