@@ -513,9 +513,9 @@ def forward_select(
                 done[sc.effect] = replace(rf, delta_bic=bic(rss_ref, wh.dof, spec.n_free) - rf.bic)
                 scores[i] = likelihood_ratio(sc, done[sc.effect], rss_ref, sigma2)
         ranked = sorted(scores, key=lambda s: (s.p_value, -s.stat))
-        # Linearised ΔBIC of each candidate from its score (one Gauss-Newton step from the
-        # base optimum: the whitened RSS drops by S·σ²); only the best eligible candidate
-        # is refitted — a full GLS refit costs a compilation per model.
+        # Linearised ΔBIC of each candidate from its statistic (for a score, one
+        # Gauss-Newton step from the base optimum: the whitened RSS drops by S·σ²; for a
+        # likelihood ratio, the refit's own drop); it ranks the candidates for the refits.
         lin = {
             sc.effect: wh.dof * np.log(rss_base / max(rss_base - sc.stat * sigma2, 1e-300))
             - (sc.k + len(sc.nonlinear)) * np.log(wh.dof)
