@@ -46,6 +46,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import generate as gen
 import numpy as np
 
+from fricjax.diagnose.run import NEAR_REST_CAVEAT, NEAR_REST_LAWS
+
 ROOT = gen.ROOT
 DEFAULT_DATA = ROOT / "out" / "concealed"
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "concealed.md"
@@ -145,7 +147,15 @@ def run_order(specs: Sequence[gen.CaseSpec]) -> list[gen.CaseSpec]:
 
 
 def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
-    keys = ("effect", "params", "location", "delta_bic", "p_value", "heldout_improvement")
+    keys = (
+        "effect",
+        "params",
+        "location",
+        "delta_bic",
+        "p_value",
+        "heldout_improvement",
+        "near_rest_caveat",
+    )
     return {k: f.get(k) for k in keys if k in f}
 
 
@@ -208,6 +218,7 @@ def diagnose_rows(
                 if steps
                 else [],
                 "sigma_x_m": diag.extra.get("sigma_x_m"),
+                "near_rest_fraction": diag.extra.get("near_rest_fraction"),
             }
         except Exception as err:  # one broken case must not lose the others
             result = {
@@ -369,6 +380,7 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
         "named_any": effect in names,
         "error": result.get("error"),
         "wall_s": result.get("wall_s"),
+        "near_rest": result.get("near_rest_fraction"),
     }
     fit = result.get("fit") or {}
     sigma_hat = result.get("sigma_x_m")
@@ -404,6 +416,22 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
         row["first_delta_bic"] = findings[0].get("delta_bic")
         row["first_p"] = findings[0].get("p_value")
     return row
+
+
+def near_rest_fraction(path: Path) -> float:
+    """Share of the samples at or near rest (``|v| < 4σ_v``, the diagnosis' reversal mask)
+    of the recording at ``path``, with σ_x from its third difference instead of the
+    diagnosis' fitted residual: for diagnoses written before they reported it."""
+    from fricjax.config import load_config
+    from fricjax.data.recording import read_recording
+    from fricjax.diagnose.run import _undecimated
+    from fricjax.diagnose.whiten import reversal_mask
+    from fricjax.output_error import noise_scale
+    from fricjax.problem import build_problem
+
+    rec = read_recording(path)
+    problem = _undecimated(build_problem(rec, load_config(gen.CONFIG)))
+    return float(np.mean(reversal_mask(problem, noise_scale(np.asarray(rec.x)))))
 
 
 def equation_error_concealment(truth: dict[str, Any], path: Path) -> float | None:
@@ -622,6 +650,47 @@ def report(
             _table(
                 ["length"] + [f"c = {lv:g}" for lv in levels] + ["nulls: false discoveries"],
                 len_body,
+            ),
+            "",
+        ]
+    # near rest ----------------------------------------------------------------------------
+    rest_rows = [r for r in eff_rows if r.get("near_rest") is not None]
+    if rest_rows:
+        laws = set(NEAR_REST_LAWS)
+        body = []
+        for lo, hi_ in ((0.0, 0.1), (0.1, 0.2), (0.2, 1.01)):
+            sub = [r for r in rest_rows if lo <= r["near_rest"] < hi_]
+            law_named = [r for r in sub if r["first"] in laws]
+            body.append(
+                [
+                    f"[{lo:g}, {min(hi_, 1):g})",
+                    len(sub),
+                    _pct(sum(r["detected"] for r in sub), len(sub)),
+                    _pct(sum(r["top1"] for r in sub), len(sub)),
+                    f"{sum(r['top1'] for r in law_named)}/{len(law_named)}",
+                    f"{sum(r['effect'] in laws for r in sub)}",
+                ]
+            )
+        lines += [
+            "## Naming against the share of samples near rest",
+            "",
+            "Near-rest fraction: samples with |v| < 4σ_v (the diagnosis' reversal mask; where "
+            "a diagnosis predates that figure, recomputed from the recording with σ_x from its "
+            "third difference). The plant sticks there, and the equation error is biased at "
+            "the breakaways; a friction-law name given at a fraction >= "
+            f"{NEAR_REST_CAVEAT:g} carries a caveat in diagnosis.json. Effects at their level, "
+            "all lengths.",
+            "",
+            _table(
+                [
+                    "near-rest fraction",
+                    "cases",
+                    "detected",
+                    "top-1",
+                    "friction-law first findings correct",
+                    "hidden friction-law effects",
+                ],
+                body,
             ),
             "",
         ]
@@ -1123,6 +1192,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except Exception as err:  # scoring extra; the diagnosis API may change under us
             print(f"c_ee of {row['case']}: {type(err).__name__}: {err}", file=sys.stderr)
             scored[-1]["c_ee"] = None
+        if scored[-1]["near_rest"] is None:
+            scored[-1]["near_rest"] = near_rest_fraction(data / row["recording"])
     n_null = sum(s.effect == gen.NULL for s in specs)
     header = {
         "command": "python benchmarks/concealed/score.py " + " ".join(argv or sys.argv[1:]),

@@ -95,6 +95,12 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
             "Noise level estimated from the whitened residual: "
             f"σ_x ≈ {diag.extra.get('sigma_x_m', float('nan')):.3g} m."
         )
+    near_rest = diag.extra.get("near_rest_fraction")
+    if near_rest is not None:
+        noise += (
+            f" {100 * near_rest:.0f} % of the samples are at or near rest (|v| < 4σ_v; left "
+            "out of the tests)."
+        )
     lines = [
         f"# Diagnosis of `{diag.recording}`",
         "",

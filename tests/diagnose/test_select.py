@@ -59,6 +59,10 @@ def test_null_record_gives_no_finding_and_truth_is_never_read(
     assert doc["findings"] == []
     assert set(doc["fit"]["before"]) >= {"ems", "bic", "whiteness_p"}
     assert doc["fit"]["before"]["whiteness_p"] > 0.001  # the base residual looks white
+    # what the record allows: the noise level found is the twin's (24 µm), and the plant
+    # rests near its reversals for a part of the record, never most of it
+    assert doc["data"]["sigma_x_m"] == pytest.approx(truth["noise_std"], rel=0.25)
+    assert 0.0 < doc["data"]["near_rest_fraction"] < 0.5
     assert (tmp_path / "out" / "report.md").read_text().startswith("# Diagnosis")
 
 
