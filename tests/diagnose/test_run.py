@@ -71,7 +71,7 @@ def _step(effect: str, params: dict[str, float]) -> SimpleNamespace:
 def test_a_friction_law_named_on_a_record_mostly_at_rest_carries_the_caveat(
     twin_problem: Problem, effect: str, params: dict[str, float]
 ) -> None:
-    """0/4 friction-law first findings were right at a near-rest fraction >= 0.2 in the
+    """0/5 friction-law first findings were right at a near-rest fraction >= 0.2 in the
     concealed benchmark: such a name says which others it may be, below it says nothing."""
     found = _finding(twin_problem, _step(effect, params), near_rest=NEAR_REST_CAVEAT + 0.1)
     caveat = found["near_rest_caveat"]
