@@ -154,6 +154,7 @@ def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
         "delta_bic",
         "p_value",
         "heldout_improvement",
+        "heldout_untestable",
         "near_rest_caveat",
     )
     return {k: f.get(k) for k in keys if k in f}
@@ -399,6 +400,7 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     named = [f for f in findings if f["effect"] != UNEXPLAINED]
     row["named_findings"] = len(named)
     row["heldout"] = [f.get("heldout_improvement") for f in named]
+    row["untestable"] = [f.get("heldout_untestable") for f in named]
     if effect in names:
         found = findings[names.index(effect)]
         params = found.get("params") or {}
@@ -432,6 +434,23 @@ def near_rest_fraction(path: Path) -> float:
     rec = read_recording(path)
     problem = _undecimated(build_problem(rec, load_config(gen.CONFIG)))
     return float(np.mean(reversal_mask(problem, noise_scale(np.asarray(rec.x)))))
+
+
+def untestable(result: dict[str, Any], path: Path) -> list[str]:
+    """For each named finding of ``result``, why the held-out part of the recording at
+    ``path`` cannot judge it (:func:`fricjax.diagnose.run.untested_place`), or ``""``: for
+    diagnoses that predate that field."""
+    from fricjax.config import load_config
+    from fricjax.data.recording import read_recording
+    from fricjax.diagnose.run import DiagnoseSettings, _undecimated, heldout_parts, untested_place
+    from fricjax.problem import build_problem
+
+    cfg = load_config(gen.CONFIG)
+    fraction = DiagnoseSettings.from_dict(dict(cfg.table("diagnose")), source=cfg.source).heldout
+    problem = _undecimated(build_problem(read_recording(path), cfg))
+    _, test = heldout_parts(problem, fraction)
+    named = [f for f in result.get("findings") or [] if f["effect"] != UNEXPLAINED]
+    return [untested_place(f.get("location") or {}, test) for f in named]
 
 
 def equation_error_concealment(truth: dict[str, Any], path: Path) -> float | None:
@@ -816,6 +835,16 @@ def report(
                 ],
                 ["named findings", str(len(named_all))],
                 ["  with held-out improvement > 0", f"{with_gain}"],
+                [
+                    "  without, whose place the held-out part never reaches",
+                    str(
+                        sum(
+                            bool(u) and (h is None or h <= 0)
+                            for r in scored
+                            for h, u in zip(r["heldout"], r.get("untestable") or [], strict=False)
+                        )
+                    ),
+                ],
                 ["  median held-out improvement", _g(float(np.median(held))) if held else "–"],
             ],
         ),
@@ -1194,6 +1223,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             scored[-1]["c_ee"] = None
         if scored[-1]["near_rest"] is None:
             scored[-1]["near_rest"] = near_rest_fraction(data / row["recording"])
+        if scored[-1]["named_findings"] and not any(scored[-1]["untestable"]):
+            scored[-1]["untestable"] = untestable(results[row["case"]], data / row["recording"])
     n_null = sum(s.effect == gen.NULL for s in specs)
     header = {
         "command": "python benchmarks/concealed/score.py " + " ".join(argv or sys.argv[1:]),

@@ -153,11 +153,7 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
             lines += [
                 "Each finding's own held-out gain (model with it against the model before it):",
                 "",
-                *(
-                    f"- {f['effect']}: {100 * f['heldout_improvement']:+.1f} % "
-                    f"({'confirmed' if f.get('heldout_confirmed') else 'NOT confirmed'})"
-                    for f in named
-                ),
+                *(f"- {f['effect']}: {_heldout_verdict(f)}" for f in named),
                 "",
             ]
     lines += ["## Candidates scored at the first step", "", "```", _score_table(diag), "```", ""]
@@ -165,6 +161,16 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
         f"- [{k}]({p.name})" for k, p in paths.items() if p.suffix == ".png"
     ]
     return "\n".join(lines) + "\n"
+
+
+def _heldout_verdict(finding: dict) -> str:
+    gain = f"{100 * finding['heldout_improvement']:+.1f} %"
+    if finding.get("heldout_untestable"):
+        return (
+            f"{gain} (untested: {finding['heldout_untestable']}; a second recording that "
+            "passes there, --validation, can confirm it)"
+        )
+    return f"{gain} ({'confirmed' if finding.get('heldout_confirmed') else 'NOT confirmed'})"
 
 
 def _score_table(diag: Diagnosis) -> str:

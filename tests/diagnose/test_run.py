@@ -4,10 +4,18 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from fricjax.diagnose.locate import LocateReport, MapBin
-from fricjax.diagnose.run import NEAR_REST_CAVEAT, NEAR_REST_LAWS, _finding, _unexplained
+from fricjax.diagnose.run import (
+    NEAR_REST_CAVEAT,
+    NEAR_REST_LAWS,
+    _finding,
+    _unexplained,
+    heldout_parts,
+    untested_place,
+)
 from fricjax.problem import Problem
 
 MAPS = ("time", "velocity+", "velocity-", "position", "acceleration", "frequency")
@@ -87,3 +95,23 @@ def test_an_effect_away_from_rest_carries_no_caveat(twin_problem: Problem) -> No
     params = {"bump_A": 300.0, "bump_x0": 0.3, "bump_w": 0.02}
     found = _finding(twin_problem, _step("position_bump", params), near_rest=0.9)
     assert "near_rest_caveat" not in found
+
+
+def test_a_place_the_held_out_part_never_reaches_is_named_and_one_it_reaches_is_not(
+    twin_problem: Problem,
+) -> None:
+    """The contiguous split's test part covers its own time span and the positions it
+    passes; a bump or an impact outside them cannot be judged there."""
+    _, test = heldout_parts(twin_problem, 0.3)
+    t, x = np.asarray(test.t), np.asarray(test.x)
+    assert t[0] > np.asarray(twin_problem.t)[0]  # the test part is the record's end
+    before = {"time_s": [0.0, t[0] - 0.01]}
+    why = untested_place(before, test)
+    assert why.startswith("the held-out part (t ") and "never reaches" in why
+    assert untested_place({"time_s": [t[0] - 0.01, t[0] + 0.01]}, test) == ""
+    span = float(x.max() - x.min())
+    outside = {"position_m": [x.max() + span, x.max() + 2 * span]}
+    assert "(x " in untested_place(outside, test)
+    assert untested_place({"position_m": [x.min(), x.max()]}, test) == ""
+    # a finding located in velocity or frequency is global in time and place
+    assert untested_place({"velocity_mps": [0.0, 0.1]}, test) == ""
