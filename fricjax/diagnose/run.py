@@ -42,8 +42,9 @@ from fricjax.problem import Problem
 # is not noise: on a 2 s benchmark record with a hidden Stribeck drop and 48 % of its
 # samples near rest, the noise-free record at its true parameters left 153 σ_x² of
 # whitened residual over 218 dof, at sliding speeds of 0.03-0.3 m/s next to the stick
-# phases (the low-pass filter smears the jump of the acceleration at each breakaway), and
-# the base fit went to the corner of its box (vs, Fs, Fc, F0 at their lower bounds).
+# phases, falling from 40-75 N rms one to three samples from a masked one to 4-7 N at
+# 15-25 (as the low-pass filter's smearing of each breakaway would), and the base fit
+# went to the corner of its box (vs, Fs and Fc at their lower bounds).
 # In the concealed benchmark (run at 1673127) every friction-law first finding at a
 # near-rest fraction >= 0.2 was wrong (0/5: Stribeck and asymmetric friction named
 # presliding_hysteresis, presliding named stribeck); top-1 over all effects was 10/13
@@ -226,7 +227,7 @@ def heldout_check(
     Every model is refitted (GLS in the whitened space of the base fit on the training
     part) and scored on the test part by the same statistic the fit minimises: the
     whitened RSS ``‖W_test·r(θ_train)‖²`` [m²], with ONE whitener ``W_test`` built from the
-    base model fitted on the training part (so every model is judged in the same metric).
+    whole record's base fit ``base`` (so every model is judged in the same metric).
     The unwhitened EMS [N²] is reported beside it but does not decide under displacement
     noise: it weighs each frequency by the noise gain of the double differentiation, so on a
     1 s record it is dominated by the high band where the noise is amplified most and where
