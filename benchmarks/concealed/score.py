@@ -26,6 +26,7 @@ Usage (reference run, see the report's header for what was run)::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -400,7 +401,6 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     named = [f for f in findings if f["effect"] != UNEXPLAINED]
     row["named_findings"] = len(named)
     row["heldout"] = [f.get("heldout_improvement") for f in named]
-    row["untestable"] = [f.get("heldout_untestable") for f in named]
     if effect in names:
         found = findings[names.index(effect)]
         params = found.get("params") or {}
@@ -420,35 +420,40 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
+@functools.lru_cache(maxsize=1)
+def _kept_problem(path: Path) -> Any:
+    """The recording at ``path`` bound to the benchmark config, undecimated as the diagnosis
+    sees it (one build per case for the truth-free checks below)."""
+    from fricjax.config import load_config
+    from fricjax.data.recording import read_recording
+    from fricjax.diagnose.run import _undecimated
+    from fricjax.problem import build_problem
+
+    return _undecimated(build_problem(read_recording(path), load_config(gen.CONFIG)))
+
+
 def near_rest_fraction(path: Path) -> float:
     """Share of the samples at or near rest (``|v| < 4σ_v``, the diagnosis' reversal mask)
     of the recording at ``path``, with σ_x from its third difference instead of the
     diagnosis' fitted residual: for diagnoses written before they reported it."""
-    from fricjax.config import load_config
     from fricjax.data.recording import read_recording
-    from fricjax.diagnose.run import _undecimated
     from fricjax.diagnose.whiten import reversal_mask
     from fricjax.output_error import noise_scale
-    from fricjax.problem import build_problem
 
-    rec = read_recording(path)
-    problem = _undecimated(build_problem(rec, load_config(gen.CONFIG)))
-    return float(np.mean(reversal_mask(problem, noise_scale(np.asarray(rec.x)))))
+    sigma = noise_scale(np.asarray(read_recording(path).x))
+    return float(np.mean(reversal_mask(_kept_problem(path), sigma)))
 
 
 def untestable(result: dict[str, Any], path: Path) -> list[str]:
     """For each named finding of ``result``, why the held-out part of the recording at
-    ``path`` cannot judge it (:func:`fricjax.diagnose.run.untested_place`), or ``""``: for
-    diagnoses that predate that field."""
+    ``path`` cannot judge it (:func:`fricjax.diagnose.run.untested_place`), or ``""``;
+    computed here for every diagnosis, whether or not it reported the field itself."""
     from fricjax.config import load_config
-    from fricjax.data.recording import read_recording
-    from fricjax.diagnose.run import DiagnoseSettings, _undecimated, heldout_parts, untested_place
-    from fricjax.problem import build_problem
+    from fricjax.diagnose.run import DiagnoseSettings, heldout_parts, untested_place
 
     cfg = load_config(gen.CONFIG)
     fraction = DiagnoseSettings.from_dict(dict(cfg.table("diagnose")), source=cfg.source).heldout
-    problem = _undecimated(build_problem(read_recording(path), cfg))
-    _, test = heldout_parts(problem, fraction)
+    _, test = heldout_parts(_kept_problem(path), fraction)
     named = [f for f in result.get("findings") or [] if f["effect"] != UNEXPLAINED]
     return [untested_place(f.get("location") or {}, test) for f in named]
 
@@ -1223,8 +1228,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             scored[-1]["c_ee"] = None
         if scored[-1]["near_rest"] is None:
             scored[-1]["near_rest"] = near_rest_fraction(data / row["recording"])
-        if scored[-1]["named_findings"] and not any(scored[-1]["untestable"]):
-            scored[-1]["untestable"] = untestable(results[row["case"]], data / row["recording"])
+        scored[-1]["untestable"] = (
+            untestable(results[row["case"]], data / row["recording"])
+            if scored[-1]["named_findings"]
+            else []
+        )
     n_null = sum(s.effect == gen.NULL for s in specs)
     header = {
         "command": "python benchmarks/concealed/score.py " + " ".join(argv or sys.argv[1:]),
