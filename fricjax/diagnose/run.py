@@ -220,6 +220,7 @@ def heldout_check(
     validation: Problem | None = None,
     noise: str = "auto",
     steps: Sequence[tuple[Model, ParamSpec, np.ndarray]] = (),
+    places: Sequence[dict[str, Any]] = (),
 ) -> dict[str, Any]:
     """Fit on the first (1 − fraction) of the record, score on the rest (or on a second
     recording): the gain must survive on data the fit has not seen.
@@ -239,7 +240,8 @@ def heldout_check(
     presliding finding gains 11.4 % of EMS, 2.2 % of spectrally whitened RSS).
     ``steps``: the intermediate models of forward selection (base + first term, base + first
     two, ...); each finding gets its own held-out improvement (``step_improvements``), not
-    just the last model's.
+    just the last model's. ``places``: each step's finding location; ``step_untestable``
+    says, per step, why the test part cannot judge it (:func:`untested_place`) or ``""``.
     """
     if validation is not None:
         train, test = problem, validation
@@ -283,6 +285,8 @@ def heldout_check(
         out["step_rss_w"] = rss[1:]
         out["step_ems"] = ems[1:]
         out["step_improvements"] = [1 - b / a for a, b in itertools.pairwise(decide)]
+    if places:
+        out["step_untestable"] = [untested_place(loc, test) for loc in places]
     return out
 
 
@@ -369,6 +373,7 @@ def diagnose(
     heldout: dict[str, float] = {}
     if findings and any(f["effect"] != "unexplained" for f in findings):
         chosen = [st.chosen for st in sel.steps if st.chosen is not None]
+        named = [f for f in findings if f["effect"] != "unexplained"]
         heldout = heldout_check(
             problem,
             base,
@@ -377,16 +382,16 @@ def diagnose(
             validation,
             settings.noise,
             steps=[(c.model, c.spec, c.theta) for c in chosen],
+            places=[f["location"] for f in named],
         )
-        named = [f for f in findings if f["effect"] != "unexplained"]
-        test = validation if validation is not None else heldout_parts(problem, settings.heldout)[1]
-        for f, gain in zip(named, heldout["step_improvements"], strict=True):
+        for f, gain, why in zip(
+            named, heldout["step_improvements"], heldout["step_untestable"], strict=True
+        ):
             # Each finding's own gain on unseen data; a term that fits the training part
             # but not the held-out one is reported as not confirmed, not silently kept.
             # A local finding whose place the test part never reaches cannot be judged
             # there: its "gain" is only the base parameters' extrapolation (a bump at
             # x = 37 mm on a record whose last 30 % runs from 72 to 101 mm: -55 %).
-            why = untested_place(f["location"], test)
             f["heldout_improvement"] = gain
             f["heldout_confirmed"] = bool(gain > 0) and not why
             if why:
