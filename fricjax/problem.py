@@ -57,7 +57,10 @@ class EquationError(eqx.Module):
     ``t, x, v, u, a`` [n]: the preprocessed recording; ``kernel`` [L], ``q``: decimation of
     the residual; ``grid``: the :class:`~fricjax.model.term.TimeGrid` of a uniform ``t``
     (passed to the terms as :class:`~fricjax.model.term.GridSignals`; the harmonic drive
-    then needs J + R sines instead of n), ``None`` for the plain per-sample evaluation.
+    then needs J + R sines instead of n), ``None`` for the plain per-sample evaluation;
+    ``rest`` [n]: samples where the model force is the stick/slip rule
+    (:meth:`~fricjax.model.system.Model.rest_force`), ``None``: the sliding law everywhere
+    (the seed's residual).
     """
 
     model: Model = eqx.field(static=True)
@@ -71,10 +74,11 @@ class EquationError(eqx.Module):
     kernel: Float[Array, " L"] | None = None
     q: int = eqx.field(static=True, default=1)
     grid: TimeGrid | None = None
+    rest: Bool[Array, " n"] | None = None
 
     def __call__(self, theta: Float[Array, " d"]) -> Float[Array, " m"]:
         sig = GridSignals(self.t, self.x, self.v, self.u, self.grid)
-        r = self.model.residual(named_static(self.spec, theta), sig, self.a)
+        r = self.model.residual(named_static(self.spec, theta), sig, self.a, self.rest)
         # IDIM-LS: anti-alias filter + keep every q-th sample of the residual (= of every
         # regressor column and the force), fricjax.data.decimate
         return r if self.q == 1 else decimate(r, self.kernel, self.q)
@@ -139,6 +143,9 @@ class Problem:
             held-out split): the noise of v and a at a cut end comes from samples beyond
             it, not from the record's end padding, and the whitener must know which.
             ``None``: the samples are a whole preprocessed record.
+        rest: bool [n], samples at or near rest where the residual uses the stick/slip
+            rule (:meth:`~fricjax.model.system.Model.rest_force`); set by the diagnosis
+            from the noise level (|v| < 4·σ_v). ``None``: the seed's sliding law everywhere.
     """
 
     model: Model
@@ -153,6 +160,7 @@ class Problem:
     source: str = ""
     preprocess: PreprocessSettings | None = None
     window: tuple[int, int] | None = None
+    rest: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -183,6 +191,7 @@ class Problem:
             kernel=None if self.q == 1 else jnp.asarray(antialias_kernel(self.q)),
             q=self.q,
             grid=self.grid,
+            rest=None if self.rest is None else jnp.asarray(self.rest, dtype=bool),
         )
 
     @cached_property
@@ -206,13 +215,19 @@ class Problem:
     def cost_fn(self) -> Cost | GridCost:
         """``theta [d] -> Σ r²`` [N²] (seed eq. 11).
 
-        A :class:`GridCost` when ``t`` has a grid, the residual is not decimated and no term
-        is stateful (:attr:`~fricjax.model.term.Term.stateful`); otherwise :class:`Cost` of
+        A :class:`GridCost` when ``t`` has a grid, the residual is not decimated, no sample
+        is marked at rest and no term is stateful
+        (:attr:`~fricjax.model.term.Term.stateful`); otherwise :class:`Cost` of
         :attr:`residual_fn`. The two agree to rounding (order of summation and angle
         addition: ≤ 1e-12 relative, tested; measured 1.6e-15 on the paper twin).
         """
         grid = self.grid
-        if grid is None or self.q != 1 or any(term.stateful for term in self.model.terms):
+        if (
+            grid is None
+            or self.q != 1
+            or self.rest is not None
+            or any(term.stateful for term in self.model.terms)
+        ):
             return Cost(self.residual_fn)
         j, r = grid.outer.shape[0], grid.inner.shape[0]
         return GridCost(

@@ -71,6 +71,7 @@ def equation_error(problem: Problem, model: Model, spec: ParamSpec) -> EquationE
         model,
         spec.structural(),
         *(jnp.asarray(a) for a in (problem.t, problem.x, problem.v, problem.u, problem.a)),
+        rest=None if problem.rest is None else jnp.asarray(problem.rest, dtype=bool),
     )
 
 

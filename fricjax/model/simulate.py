@@ -347,10 +347,5 @@ def simulate(
 
 def _sampled_accel(model: Model, p: Mapping[str, Array], s: Signals) -> Float[Array, " n"]:
     """``(F_p − F_f)/m`` on sampled states, with the stick/slip rule at rest [m/s²]."""
-    drive = model.drive(p, s)
-    d = jnp.sign(drive)
-    limit = model.static(p, s, d)
-    stuck = (s.v == 0) & (jnp.abs(drive) <= jnp.abs(limit))
-    sliding = (drive - model.friction(p, s)) / p["mass"]
-    breaking = (drive - limit) / p["mass"]
-    return jnp.where(s.v != 0, sliding, jnp.where(stuck, 0.0, breaking))
+    sliding = model.force(p, s) / p["mass"]
+    return jnp.where(s.v != 0, sliding, model.rest_force(p, s) / p["mass"])

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from fricjax.errors import FricjaxError
 from fricjax.model.term import Basis, Groups, Signals, Term, no_basis
@@ -89,9 +89,42 @@ class Model:
         """Model force ``F* = F_p − F_f`` [N] (seed eq. 5)."""
         return self.drive(p, s) - self.friction(p, s)
 
-    def residual(self, p: Named, s: Signals, a: Float[Array, " n"]) -> Float[Array, " n"]:
-        """Equation-error residual ``m·a − F*`` [N], shape [n] (seed eq. 11 summand)."""
-        return p["mass"] * a - self.force(p, s)
+    def rest_force(self, p: Named, s: Signals) -> Float[Array, "..."]:
+        """Net force on the body at rest [N] (the stick/slip rule of Karnopp):
+
+            F*_rest = 0                     while |F_p| ≤ |F_s(sgn F_p)|   (stuck)
+                    = F_p − F_s(sgn F_p)    once the drive exceeds it      (breaking away)
+
+        with ``F_s(d)`` = :meth:`static`. Stateful terms (LuGre bristles) have no pointwise
+        static limit and add none here: their force lives in the sliding samples after a
+        breakaway, where the bristle state lags.
+        """
+        drive = self.drive(p, s)
+        d = jnp.sign(drive)
+        limit = jnp.zeros_like(drive * d)
+        for term in self.terms:
+            if term.role == "friction" and not term.stateful:
+                limit = limit + term.static(p, s, d)
+        return jnp.where(jnp.abs(drive) <= jnp.abs(limit), 0.0, drive - limit)
+
+    def residual(
+        self,
+        p: Named,
+        s: Signals,
+        a: Float[Array, " n"],
+        rest: Bool[Array, " n"] | None = None,
+    ) -> Float[Array, " n"]:
+        """Equation-error residual ``m·a − F*`` [N], shape [n] (seed eq. 11 summand).
+
+        ``rest``: samples taken to be at rest, where ``F*`` is :meth:`rest_force` instead of
+        the sliding law. There the measured v is noise around zero (and the filtered v of a
+        stuck body smears the breakaway): the sliding law would evaluate ``sgn`` of noise and
+        the friction of a body that is not sliding.
+        """
+        force = self.force(p, s)
+        if rest is not None:
+            force = jnp.where(rest, self.rest_force(p, s), force)
+        return p["mass"] * a - force
 
     # -- separable form (see module docstring) --------------------------------------------
     def require_basis(self) -> None:
