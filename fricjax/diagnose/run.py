@@ -474,10 +474,10 @@ def _finding(problem: Problem, step: Any, near_rest: float = 0.0) -> dict[str, A
         others = [e for e in NEAR_REST_LAWS if e != chosen.effect]
         out["near_rest_caveat"] = {"near_rest_fraction": near_rest, "confusable_with": others}
         out["explanation"] += (
-            f" Caution: {100 * near_rest:.0f} % of the samples are at or near rest, where "
-            "the equation error is biased at the breakaways; on such records "
-            f"{', '.join(others)} are easily mistaken for this one: read it as friction "
-            "near rest differing from the model."
+            f" Caution: {100 * near_rest:.0f} % of the samples are at or near rest and left "
+            "out of the tests, so how the plant stops and breaks away is hardly seen; on "
+            f"such records {', '.join(others)} are easily mistaken for this one: read it as "
+            "friction near rest differing from the model."
         )
     return out
 
