@@ -539,13 +539,18 @@ def resolve_noise(problem: Problem, noise: str = "auto") -> str:
     return "spectral" if needs_input(problem.model) else "position"
 
 
+def _static_level(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
+    """Largest friction limit at rest over the record [N] (0: nothing sticks at theta)."""
+    p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
+    jump = np.asarray(problem.model.static(p, problem.signals, jnp.ones(problem.n)))
+    return float(np.max(np.abs(jump)))
+
+
 def near_rest(problem: Problem, theta: Float[np.ndarray, " d"]) -> Float[np.ndarray, " n"] | None:
     """Samples at or near rest, ``|v| < 4·σ_v`` (:func:`reversal_mask`) with σ̂_x from a
     first whitening of the residual at ``theta`` (:func:`robust_sigma`), bool [n]; ``None``
     when the model at ``theta`` has no static friction (nothing sticks)."""
-    p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
-    jump = np.asarray(problem.model.static(p, problem.signals, jnp.ones(problem.n)))
-    if not np.any(np.abs(jump) > 0):
+    if _static_level(problem, theta) == 0.0:
         return None
     first = make_whitener(problem, damping=linear_damping(problem, theta))
     sigma = robust_sigma(first, first(np.asarray(problem.residual(theta))))
@@ -581,9 +586,8 @@ def default_whitener(
         dt = float((problem.t[-1] - problem.t[0]) / (problem.n - 1))
         spectrum = noise_spectrum(r, dt)
         unmasked = make_whitener(problem, spectrum=spectrum)
-    p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
-    jump = np.asarray(problem.model.static(p, problem.signals, jnp.ones(problem.n)))
-    if not np.any(np.abs(jump) > 0):
+    static = _static_level(problem, theta)
+    if static == 0.0:
         return unmasked
     sigma = robust_sigma(first, first(r))
     # The samples marked at rest are these same samples (with_rest), kept as marked so that
@@ -595,7 +599,7 @@ def default_whitener(
     # the largest first (a badly fitting base inflates σ̂ and with it the mask, and
     # something must be left to test).
     # (the spectral whitener's vectors are already in noise units, the position one's in m)
-    spike = 2.0 * float(np.max(np.abs(jump))) / (1.0 if spectrum is not None else sigma)
+    spike = 2.0 * static / (1.0 if spectrum is not None else sigma)
     limit = int(0.4 * unmasked.M)
     return make_whitener(
         problem, damping=c, exclude=mask, spectrum=spectrum, spike=spike, max_rank=limit
