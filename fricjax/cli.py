@@ -349,9 +349,12 @@ def diagnose(
     mass: MassOpt = None,
 ) -> None:
     """Locate the mismatch, name the physics left out, model it, show the fit improve."""
-    from fricjax.api import diagnose_recording
+    from fricjax.api import diagnose_recording, enable_compilation_cache
     from fricjax.report.tables import fmt
 
+    # most of a cold diagnosis is compilation; a later record of the same length and
+    # config (data are arguments, not constants) loads the programs instead
+    enable_compilation_cache()
     diag, paths = diagnose_recording(
         recording,
         config,

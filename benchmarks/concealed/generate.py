@@ -76,7 +76,7 @@ import tempfile
 import time
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
@@ -109,7 +109,10 @@ DEFAULT_LENGTHS: tuple[float, ...] = (0.272, 1.0, 2.0)
 RATE = 1000.0  # Hz, the twin's
 SUBSTEPS = 16  # RK4 sub-steps per sample, the twin's
 FINE = 16  # presliding: fine grid factor (fine step = one RK4 sub-step)
-FORMAT = "fricjax-concealed-v1"
+# v2: the equation-error measures carry the diagnosis' stick/slip rule at rest (with_rest);
+# v1 scaled them in the sliding-law residual, whose bias at breakaways inflated c for the
+# friction laws (a v1 "c = 5" Stribeck drop is c ≈ 1 to the diagnosis of today)
+FORMAT = "fricjax-concealed-v2"
 MEASURES = ("output", "equation", "refit")
 
 # Base-plant variation around the paper truth (each draw stays well inside the config box,
@@ -339,9 +342,14 @@ class EquationErrorView:
 
     def __init__(self, problem: Problem, base: Mapping[str, float], sigma: float) -> None:
         from fricjax.diagnose.locate import default_whitener, jacobian
+        from fricjax.diagnose.run import with_rest
 
-        self.problem, self.base, self.sigma = problem, dict(base), sigma
+        self.base, self.sigma = dict(base), sigma
         self.theta0 = problem.theta(self.base)
+        # the diagnosis marks the samples at rest and applies the stick/slip rule there;
+        # the truth stands in for the identified parameters it marks them at
+        problem = with_rest(problem, self.theta0)
+        self.problem = problem
         self.r0 = problem.residual(self.theta0)
         self.wh = default_whitener(problem, self.theta0)
         jw = self.wh(jacobian(problem, self.theta0))
@@ -820,11 +828,12 @@ def make_case(
             if key not in floors:
                 clean = Recording(t=t, x=xb, mass=given_mass, name=case_id)
                 floors.clear()
-                floors[key] = np.asarray(build_problem(clean, config).residual(view.theta0))
+                clean_problem = replace(build_problem(clean, config), rest=view.problem.rest)
+                floors[key] = np.asarray(clean_problem.residual(view.theta0))
             clean_effect = Recording(t=t, x=xe, mass=given_mass, name=case_id)
             c, _ = refit_concealment(
                 view,
-                build_problem(clean_effect, config),
+                replace(build_problem(clean_effect, config), rest=view.problem.rest),
                 floors[key],
                 view.absorbing_step(spec.effect, draw.params(a)),
             )
@@ -916,6 +925,38 @@ def write_case(case: Case, out: Path) -> dict[str, Any]:
     }
 
 
+def _progress_line(i: int, total: int, case: Case) -> str:
+    tr, spec = case.truth, case.spec
+    return (
+        f"[{i + 1}/{total}] {case.case_id} {spec.effect} c={spec.level:g} "
+        f"T={spec.duration:g}s: c={tr['concealment']:.3f} "
+        f"(output {tr['concealment_output']:.3g}, ee {tr['concealment_ee']:.3g}, "
+        f"refit {tr.get('concealment_refit', 0.0):.3g}) "
+        f"rms/σ={tr['raw_rms_over_sigma']:.3f} ({tr['generate_s']:.1f} s)"
+    )
+
+
+def _generate_chunk(
+    indexed: Sequence[tuple[int, CaseSpec]],
+    total: int,
+    out: str,
+    seed: int,
+    noise_std: float,
+    substeps: int,
+    measure: str,
+    config: Config,
+) -> list[tuple[int, dict[str, Any]]]:
+    """One worker's share of :func:`generate` (``jobs`` > 1): write its cases, return rows."""
+    rows = []
+    for i, spec in indexed:
+        case = make_case(
+            spec, seed, config, noise_std=noise_std, substeps=substeps, measure=measure
+        )
+        rows.append((i, write_case(case, Path(out))))
+        print(_progress_line(i, total, case), flush=True)
+    return rows
+
+
 def generate(
     out: str | Path,
     specs: Sequence[CaseSpec],
@@ -926,25 +967,46 @@ def generate(
     measure: str = "output",
     config: Config | None = None,
     progress: Callable[[str], None] | None = None,
+    jobs: int = 1,
 ) -> dict[str, Any]:
-    """Write every case of ``specs`` and ``out/manifest.json``; returns the manifest."""
+    """Write every case of ``specs`` and ``out/manifest.json``; returns the manifest.
+
+    ``jobs`` > 1 deals the cases out round robin to that many worker processes (``spawn``:
+    jax must not be forked); a case depends only on its
+    spec and the seed, so the files are the same as with one process."""
     out = Path(out)
     config = config or load_config(CONFIG)
     rows = []
-    for i, spec in enumerate(specs):
-        case = make_case(
-            spec, seed, config, noise_std=noise_std, substeps=substeps, measure=measure
-        )
-        rows.append(write_case(case, out))
-        if progress is not None:
-            tr = case.truth
-            progress(
-                f"[{i + 1}/{len(specs)}] {case.case_id} {spec.effect} c={spec.level:g} "
-                f"T={spec.duration:g}s: c={tr['concealment']:.3f} "
-                f"(output {tr['concealment_output']:.3g}, ee {tr['concealment_ee']:.3g}, "
-                f"refit {tr.get('concealment_refit', 0.0):.3g}) "
-                f"rms/σ={tr['raw_rms_over_sigma']:.3f} ({tr['generate_s']:.1f} s)"
+    if jobs > 1 and len(specs) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
+
+        indexed = list(enumerate(specs))
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+            futures = [
+                pool.submit(
+                    _generate_chunk,
+                    indexed[k::jobs],
+                    len(specs),
+                    str(out),
+                    seed,
+                    noise_std,
+                    substeps,
+                    measure,
+                    config,
+                )
+                for k in range(jobs)
+            ]
+            by_index = dict(itertools.chain.from_iterable(f.result() for f in futures))
+        rows = [by_index[i] for i in range(len(specs))]
+    else:
+        for i, spec in enumerate(specs):
+            case = make_case(
+                spec, seed, config, noise_std=noise_std, substeps=substeps, measure=measure
             )
+            rows.append(write_case(case, out))
+            if progress is not None:
+                progress(_progress_line(i, len(specs), case))
     manifest = {
         "format": FORMAT,
         "seed": seed,
@@ -982,6 +1044,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--substeps", type=int, default=SUBSTEPS)
     ap.add_argument("--measure", choices=MEASURES, default="output", help="concealment scaled to")
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (1: this one)")
     args = ap.parse_args(argv)
     try:
         effects, with_nulls = parse_effects(args.cases)
@@ -999,6 +1062,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             substeps=args.substeps,
             measure=args.measure,
             progress=lambda m: print(m, flush=True),
+            jobs=args.jobs,
         )
     except FricjaxError as err:
         print(f"error: {err}", file=sys.stderr)

@@ -219,6 +219,33 @@ def test_apply_jax_matches_numpy_inside_jit() -> None:
     assert np.allclose(np.asarray(wh.apply_jax(y[:, 0])), wh(y[:, 0]), rtol=0, atol=1e-18)
 
 
+def test_whiteners_of_different_ranks_share_one_compiled_program() -> None:
+    """The module pads N to the rank cap and U to M: records whose excluded samples differ
+    (here 3 and 13 of them) give modules of one shape, and the same map as numpy."""
+    pb = bare_problem(252, PAPER)
+    rng = np.random.default_rng(2)
+    y = rng.normal(size=252)
+    ops, whs = [], []
+    for every in (100, 20):
+        wh = make_whitener(pb, damping=3000.0, exclude=np.arange(252) % every == 0, max_rank=40)
+        whs.append(wh)
+        ops.append(wh.module)
+    assert whs[0].N.shape[1] != whs[1].N.shape[1]
+    shapes = [[leaf.shape for leaf in jax.tree_util.tree_leaves(op)] for op in ops]
+    assert shapes[0] == shapes[1]
+    traces = []
+
+    @jax.jit
+    def apply(op: object, arr: jax.Array) -> jax.Array:
+        traces.append(1)
+        return op(arr)  # type: ignore[operator]
+
+    for wh, op in zip(whs, ops, strict=True):
+        out = np.asarray(apply(op, jnp.asarray(y)))
+        assert np.max(np.abs(out - wh(y))) < 1e-12 * np.abs(wh(y)).max()
+    assert len(traces) == 1
+
+
 @pytest.fixture(scope="module")
 def coulomb_records() -> tuple[Problem, list[Problem], np.ndarray]:
     """1 s paper twin (Coulomb + Stribeck): exact trajectory, then white x-noise through
