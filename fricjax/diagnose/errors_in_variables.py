@@ -47,6 +47,7 @@ from fricjax.diagnose.whiten import Whitener, friction_slope, noise_operators
 from fricjax.model.system import Model
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
+from fricjax.search.fast_compile import FAST_COMPILE
 
 # The correction needs dense [n, M] cross-covariances; beyond this many entries (a 20 s
 # record at 1 kHz) it is skipped rather than exhaust memory.
@@ -80,7 +81,7 @@ def with_signals(res: EquationError, x: Array, v: Array, a: Array) -> EquationEr
     return eqx.tree_at(lambda e: (e.x, e.v, e.a), res, (x, v, a))
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=FAST_COMPILE)
 def signal_jacobians(res: EquationError, theta: Array) -> tuple[Array, Array]:
     """``(J [n, d], D [3, n, d])``: ``J = ∂r/∂θ`` and ``D_s = ∂J/∂s`` sample by sample, for
     s = x, v, a (J is the primal of the same jvp)."""

@@ -67,6 +67,7 @@ from fricjax.diagnose.whiten import (
 )
 from fricjax.errors import FricjaxError, where
 from fricjax.problem import Problem, needs_input
+from fricjax.search.fast_compile import FAST_COMPILE
 
 VARIABLES: tuple[str, ...] = (
     "time",
@@ -606,7 +607,7 @@ def default_whitener(
     )
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=FAST_COMPILE)
 def _jacfwd(fn: Any, theta: Array) -> Array:
     return jax.jacfwd(fn)(theta)
 

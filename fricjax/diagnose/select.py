@@ -55,6 +55,7 @@ from fricjax.model.system import Model
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
 from fricjax.refine import RefineSettings, refine
+from fricjax.search.fast_compile import FAST_COMPILE
 
 
 @dataclass
@@ -143,16 +144,21 @@ def bic(rss_w: float, m: int, k: int) -> float:
     return float(m * np.log(rss_w / m) + k * np.log(m))
 
 
+# The diagnosis' Jacobians and score columns run once per record and candidate, in
+# milliseconds, after compiling for a second or more each: compile time is what counts.
+_fast_jit = eqx.filter_jit(compiler_options=FAST_COMPILE)
+
+
 def _jacobian(fn: Any, theta: np.ndarray) -> np.ndarray:
     return np.asarray(_jacfwd(fn, jnp.asarray(theta)))
 
 
-@eqx.filter_jit
+@_fast_jit
 def _jacfwd(fn: Any, theta: Array) -> Array:
     return jax.jacfwd(fn)(theta)
 
 
-@eqx.filter_jit
+@_fast_jit
 def _eval(fn: Any, theta: Array) -> Array:
     return fn(theta)
 
@@ -237,7 +243,7 @@ def _theta_e(layout: tuple, base: Array, beta: Array, nl_row: Array) -> Array:
     return th
 
 
-@eqx.filter_jit
+@_fast_jit
 def _columns(wres: Any, base: Array, nl: Array, layout: tuple) -> Array:
     n_lin = len(layout[1])
 
@@ -249,7 +255,7 @@ def _columns(wres: Any, base: Array, nl: Array, layout: tuple) -> Array:
     return jax.vmap(one)(nl)
 
 
-@eqx.filter_jit
+@_fast_jit
 def _own_parts(res_e: EquationError, base: Array, nl: Array, layout: tuple, kappa: Array) -> Array:
     """``Σ_s Σ_i κ_s,i·∂j_c,i/∂s_i`` [G, k] for the unwhitened candidate columns
     (:mod:`fricjax.diagnose.errors_in_variables`): sample by sample, one jvp along κ."""

@@ -89,7 +89,9 @@ class Model:
         """Model force ``F* = F_p − F_f`` [N] (seed eq. 5)."""
         return self.drive(p, s) - self.friction(p, s)
 
-    def rest_force(self, p: Named, s: Signals) -> Float[Array, "..."]:
+    def rest_force(
+        self, p: Named, s: Signals, drive: Float[Array, "..."] | None = None
+    ) -> Float[Array, "..."]:
         """Net force on the body at rest [N] (the stick/slip rule of Karnopp):
 
             F*_rest = 0                     while |F_p| ≤ |F_s(sgn F_p)|   (stuck)
@@ -97,9 +99,10 @@ class Model:
 
         with ``F_s(d)`` = :meth:`static`. Stateful terms (LuGre bristles) have no pointwise
         static limit and add none here: their force lives in the sliding samples after a
-        breakaway, where the bristle state lags.
+        breakaway, where the bristle state lags. ``drive``: :meth:`drive` at (p, s) when the
+        caller has it already.
         """
-        drive = self.drive(p, s)
+        drive = self.drive(p, s) if drive is None else drive
         d = jnp.sign(drive)
         limit = jnp.zeros_like(drive * d)
         for term in self.terms:
@@ -121,9 +124,11 @@ class Model:
         stuck body smears the breakaway): the sliding law would evaluate ``sgn`` of noise and
         the friction of a body that is not sliding.
         """
-        force = self.force(p, s)
+        # the drive once for both laws: traced twice, it doubled the diagnosis' compile time
+        drive = self.drive(p, s)
+        force = drive - self.friction(p, s)
         if rest is not None:
-            force = jnp.where(rest, self.rest_force(p, s), force)
+            force = jnp.where(rest, self.rest_force(p, s, drive), force)
         return p["mass"] * a - force
 
     # -- separable form (see module docstring) --------------------------------------------
