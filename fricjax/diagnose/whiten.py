@@ -207,12 +207,14 @@ class Whitener:
         """The same map as an equinox Module: arrays are leaves, so a jitted function taking
         it as an argument compiles once for every whitener of the same shape.
 
-        U and s are padded with zero columns to M, N to ``rank_cap`` (when the whitener was
-        made with ``max_rank``): zero columns change neither the edge correction nor the
-        projection, and the ranks vary from record to record (N: 31 to 80 columns over
-        twelve 1 s benchmark records, U: 197 to 200), so without the padding every record
-        recompiled every jitted residual of the diagnosis."""
-        q = max(self.M, self.U.shape[1])
+        U and s are padded with zero columns to a multiple of 32 (at most M; none when U is
+        empty), N to ``rank_cap`` (when the whitener was made with ``max_rank``): zero
+        columns change neither the edge correction nor the projection, and the ranks vary
+        from record to record (N: 31 to 80 columns over twelve 1 s benchmark records, U: 197
+        to 200), so without the padding every record recompiled every jitted residual of
+        the diagnosis. The multiple of 32, not M, keeps a long record's few correction
+        columns few."""
+        q = min(self.M, -(-self.U.shape[1] // 32) * 32)
         return WhitenOp(
             jnp.asarray(self.keep),
             jnp.asarray(self.gain),
