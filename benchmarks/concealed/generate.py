@@ -945,16 +945,23 @@ def _generate_chunk(
     substeps: int,
     measure: str,
     config: Config,
+    progress: Callable[[str], None] | None,
 ) -> list[tuple[int, dict[str, Any]]]:
-    """One worker's share of :func:`generate` (``jobs`` > 1): write its cases, return rows."""
+    """Write the cases ``indexed`` [(position in the list, spec)]; return (position, row):
+    all of :func:`generate` with one process, one worker's share with several."""
     rows = []
     for i, spec in indexed:
         case = make_case(
             spec, seed, config, noise_std=noise_std, substeps=substeps, measure=measure
         )
         rows.append((i, write_case(case, Path(out))))
-        print(_progress_line(i, total, case), flush=True)
+        if progress is not None:
+            progress(_progress_line(i, total, case))
     return rows
+
+
+def _print_flush(line: str) -> None:
+    print(line, flush=True)
 
 
 def generate(
@@ -972,41 +979,26 @@ def generate(
     """Write every case of ``specs`` and ``out/manifest.json``; returns the manifest.
 
     ``jobs`` > 1 deals the cases out round robin to that many worker processes (``spawn``:
-    jax must not be forked); a case depends only on its
-    spec and the seed, so the files are the same as with one process."""
+    jax must not be forked); a case depends only on its spec and the seed, so the files are
+    the same as with one process."""
     out = Path(out)
     config = config or load_config(CONFIG)
-    rows = []
+    indexed = list(enumerate(specs))
+    common = (len(specs), str(out), seed, noise_std, substeps, measure, config)
     if jobs > 1 and len(specs) > 1:
         from concurrent.futures import ProcessPoolExecutor
         from multiprocessing import get_context
 
-        indexed = list(enumerate(specs))
+        # workers print their own progress (a callable from here need not pickle)
         with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
             futures = [
-                pool.submit(
-                    _generate_chunk,
-                    indexed[k::jobs],
-                    len(specs),
-                    str(out),
-                    seed,
-                    noise_std,
-                    substeps,
-                    measure,
-                    config,
-                )
+                pool.submit(_generate_chunk, indexed[k::jobs], *common, _print_flush)
                 for k in range(jobs)
             ]
             by_index = dict(itertools.chain.from_iterable(f.result() for f in futures))
-        rows = [by_index[i] for i in range(len(specs))]
     else:
-        for i, spec in enumerate(specs):
-            case = make_case(
-                spec, seed, config, noise_std=noise_std, substeps=substeps, measure=measure
-            )
-            rows.append(write_case(case, out))
-            if progress is not None:
-                progress(_progress_line(i, len(specs), case))
+        by_index = dict(_generate_chunk(indexed, *common, progress))
+    rows = [by_index[i] for i in range(len(specs))]
     manifest = {
         "format": FORMAT,
         "seed": seed,
