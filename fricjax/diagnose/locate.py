@@ -229,13 +229,21 @@ def score_statistic(
     return float(proj @ proj / sigma2)
 
 
-def score_pvalue(score: float | np.ndarray, k: int | np.ndarray, dof: int) -> np.ndarray:
+def score_pvalue(
+    score: float | np.ndarray, k: int | np.ndarray, dof: int, external: int = 0
+) -> np.ndarray:
     """p-value of a score with k regressors when σ̂² = ‖P⊥ r_w‖²/dof comes from the same
-    residual: ``S/dof ~ Beta(k/2, (dof − k)/2)`` under H0 (k = 0 gives 1)."""
+    residual: ``S/dof ~ Beta(k/2, (dof − k)/2)`` under H0 (k = 0 gives 1); with
+    ``external`` = ν > 0, σ̂² is an independent estimate with ν degrees of freedom
+    (``σ̂²/σ² ~ χ²_ν/ν``): ``S/k ~ F(k, ν)``."""
     s = np.asarray(score, dtype=np.float64)
     k = np.broadcast_to(np.asarray(k), s.shape)
-    ok = (k > 0) & (k < dof)
     out = np.ones(s.shape)
+    if external > 0:
+        ok = k > 0
+        out[ok] = stats.f.sf(s[ok] / k[ok], k[ok], external)
+        return out
+    ok = (k > 0) & (k < dof)
     x = np.clip(s / dof, 0.0, 1.0)
     out[ok] = stats.beta.sf(x[ok], k[ok] / 2.0, (dof - k[ok]) / 2.0)
     return out
@@ -248,14 +256,16 @@ def max_score_null(
     *,
     J_w: Float[np.ndarray, "M d"] | None = None,
     dof: int | None = None,
+    external: int = 0,
 ) -> Float[np.ndarray, " n_mc"]:
     """Monte Carlo of ``max_b S_b`` under H0 for B regressor sets (already projected off J).
 
     ``z ~ N(0, I_M)`` (numpy PCG64 from ``seed``: same seed, same draws); ``S_b = ‖Q_bᵀ z‖²``
     with ``Q_b`` an orthonormal basis of ``G_perp[b]`` (zero or dependent columns dropped).
     With ``J_w`` given each draw is normalised by its own ``σ̂² = ‖P⊥ z‖²/dof`` (dof default
-    ``M − rank J_w``), matching a statistic whose σ̂ comes from the same residual; without,
-    σ² = 1. Returns [n_mc].
+    ``M − rank J_w``), matching a statistic whose σ̂ comes from the same residual; with
+    ``external`` = ν > 0 instead by an independent ``χ²_ν/ν`` (a σ̂ estimated elsewhere,
+    :func:`fricjax.diagnose.select.forward_select`); without either, σ² = 1. Returns [n_mc].
     """
     stack = _orthonormal_stack(G_perp)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
@@ -269,7 +279,9 @@ def max_score_null(
         size = min(_MC_BLOCK, n_mc - start)
         Z = rng.standard_normal((m, size))
         scale = np.ones(size)
-        if Q is not None:
+        if external > 0:
+            scale = rng.chisquare(external, size) / external
+        elif Q is not None:
             Zp = Z - Q @ (Q.T @ Z)
             scale = np.sum(Zp**2, axis=0) / dof
         out[start : start + size] = _family_scores(fam, Z).max(axis=0) / scale

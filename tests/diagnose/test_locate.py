@@ -136,6 +136,11 @@ def test_max_score_null_is_chi2_and_reproducible(twin: Twin) -> None:
     dof = twin.wh.M - 20
     null_j = max_score_null(gp, 4000, 13, J_w=J)
     assert stats.kstest(null_j / dof, stats.beta(0.5, (dof - 1) / 2).cdf).pvalue > 0.01
+    # Normalised by an independent σ̂² with ν degrees of freedom: S ~ F(1, ν).
+    null_e = max_score_null(gp, 4000, 14, external=30)
+    assert stats.kstest(null_e, stats.f(1, 30).cdf).pvalue > 0.01
+    p = score_pvalue(null_e, 1, dof, external=30)
+    assert stats.kstest(p, stats.uniform.cdf).pvalue > 0.01
 
 
 def test_score_pvalues_of_fixed_regressors_are_uniform(twin: Twin) -> None:

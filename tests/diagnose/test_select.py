@@ -117,3 +117,22 @@ def _check_visible(config: Config, effect: str) -> None:
         assert lo <= 0.4 <= hi
         assert abs(first["params"]["impact_A"] / 3000.0 - 1) < 0.2
     assert np.isfinite(diag.fit["after"]["ems"])
+
+
+def test_difference_sigma_is_unbiased_on_smooth_motion_and_has_its_degrees_of_freedom() -> None:
+    # 400 records of 272 samples: a smooth ramming-like motion plus white noise of 24 µm.
+    # Its σ̂ must be the noise's (the motion's jerk·dt³ is ~1e-3 of it here), and the spread
+    # of σ̂² must be that of χ²_ν/ν with the ν it reports (the test statistics rely on it).
+    from fricjax.diagnose.select import difference_sigma
+
+    rng = np.random.default_rng(3)
+    t = np.arange(272) * 1e-3
+    motion = 0.1 * (1.0 - np.cos(2 * np.pi * 3.0 * t))  # [m]
+    sigma = 24e-6
+    draws = [difference_sigma(motion + sigma * rng.normal(size=t.size)) for _ in range(400)]
+    s2 = np.array([s**2 for s, _ in draws]) / sigma**2
+    nu = draws[0][1]
+    assert nu == int(269 / 2.31)
+    assert np.mean(s2) == pytest.approx(1.0, abs=0.02)
+    # var(χ²_ν/ν) = 2/ν; 400 draws estimate it within ~15 %
+    assert np.var(s2) == pytest.approx(2.0 / nu, rel=0.2)
