@@ -136,3 +136,44 @@ def test_difference_sigma_is_unbiased_on_smooth_motion_and_has_its_degrees_of_fr
     assert np.mean(s2) == pytest.approx(1.0, abs=0.02)
     # var(χ²_ν/ν) = 2/ν; 400 draws estimate it within ~15 %
     assert np.var(s2) == pytest.approx(2.0 / nu, rel=0.2)
+
+
+def test_held_at_bounds_marks_only_parameters_the_box_stops() -> None:
+    # ½‖r‖² decreases along −grad: a parameter at its lower bound with grad > 0 wants to go
+    # lower (held); at its lower bound with grad < 0 it would move inwards (free).
+    from fricjax.diagnose.select import held_at_bounds
+
+    lower, upper = np.zeros(5), np.ones(5)
+    theta = np.array([0.0, 0.0, 1.0, 1.0, 0.5])
+    grad = np.array([2.0, -2.0, -3.0, 3.0, 5.0])
+    assert held_at_bounds(theta, lower, upper, grad).tolist() == [True, False, True, False, False]
+
+
+def test_refit_starts_are_distinct_grid_maxima_led_by_the_best() -> None:
+    # A 1-D frequency grid with peaks at 74 and 30 Hz, the uncentred statistic peaking at
+    # 68 Hz, and a 2-D (location x width) grid: the best point first, the uncentred
+    # statistic's best next, then the next highest points, never a grid neighbour of a
+    # chosen point (73 and 75 Hz score 38.9 but neighbour 74 Hz).
+    from fricjax.diagnose.select import refit_starts
+
+    f = np.linspace(10.0, 100.0, 91)
+    stats = np.exp(-((f - 74.0) ** 2) / 4.0) * 50 + np.exp(-((f - 30.0) ** 2) / 4.0) * 40
+    raw = np.exp(-((f - 68.0) ** 2) / 4.0) * 60
+    points = [{"harm_f": float(v)} for v in f]
+    picked = [points[i]["harm_f"] for i in refit_starts(stats, raw, points)]
+    assert picked == [74.0, 68.0, 30.0]
+    x0, w = np.meshgrid(np.linspace(0, 0.1, 11), [1e-3, 2e-3, 4e-3], indexing="ij")
+    pts = [{"x0": float(a), "w": float(b)} for a, b in zip(x0.ravel(), w.ravel(), strict=True)]
+    s2 = np.exp(-((x0.ravel() - 0.05) ** 2) / 1e-3)
+    chosen = refit_starts(s2, s2, pts)
+    assert chosen[0] == int(np.argmax(s2)) and len(chosen) == 3
+    for i in chosen:
+        for j in chosen:
+            if i != j:
+                assert (
+                    max(
+                        abs(pts[i]["x0"] - pts[j]["x0"]) / 0.01,
+                        abs(np.log2(pts[i]["w"] / pts[j]["w"])),
+                    )
+                    > 1.5
+                )
