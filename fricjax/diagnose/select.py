@@ -22,8 +22,13 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
   parameters bend towards such a term, so the one-step score at the base optimum sees
   little of it: on a 1 s record with hidden quadratic drag (c = 5) the score was 9.5
   (p = 1.7e-3), the refit's LR 32.7; on five null records every such LR was ≤ 4.3.
-* The best few candidates are refitted (GLS, LM on base + term); ΔBIC = BIC(base) −
-  BIC(base+term) with ``BIC = M·ln(RSS_w/M) + k·ln M``.
+* The best few candidates are refitted (GLS, LM on base + term, from up to three distinct
+  grid maxima of the score: :func:`refit_starts`); ΔBIC = BIC(base) − BIC(base+term) with
+  ``BIC = M·ln(RSS_w/M) + k·ln M``.
+* Base parameters that the box holds (:func:`held_at_bounds`) stay out of the projection:
+  the base cannot absorb along them. Where the residual leaves no more degrees of freedom
+  than the base has parameters (short records), σ̂ is taken from the third difference of
+  the recorded x (:func:`difference_sigma`) and the scores follow F(k, ν) instead of Beta.
 * Forward selection: add the best candidate while its p-value < α / (number of candidates)
   and ΔBIC > ``min_delta_bic``; repeat from the enlarged model.
 """
