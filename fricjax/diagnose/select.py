@@ -25,10 +25,9 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
 * The best few candidates are refitted (GLS, LM on base + term, from up to three distinct
   grid maxima of the score: :func:`refit_starts`); ΔBIC = BIC(base) − BIC(base+term) with
   ``BIC = M·ln(RSS_w/M) + k·ln M``.
-* Base parameters that the box holds (:func:`held_at_bounds`) stay out of the projection:
-  the base cannot absorb along them. Where the residual leaves no more degrees of freedom
-  than the base has parameters (short records), σ̂ is taken from the third difference of
-  the recorded x (:func:`difference_sigma`) and the scores follow F(k, ν) instead of Beta.
+* Where the residual leaves no more degrees of freedom than the base has parameters (short
+  records), σ̂ is taken from the third difference of the recorded x
+  (:func:`difference_sigma`) and the scores follow F(k, ν) instead of Beta.
 * Forward selection: add the best candidate while its p-value < α / (number of candidates)
   and ΔBIC > ``min_delta_bic``; repeat from the enlarged model.
 """
@@ -492,29 +491,6 @@ def rebase(
     return gls_fit(problem, model, spec, start, wh)
 
 
-def held_at_bounds(
-    theta: Float[np.ndarray, " d"],
-    lower: Float[np.ndarray, " d"],
-    upper: Float[np.ndarray, " d"],
-    grad: Float[np.ndarray, " d"],
-    rel: float = 1e-6,
-) -> np.ndarray:
-    """Parameters [bool, d] that the box holds: on a bound (within ``rel`` of the box's
-    width) with the gradient ``Jᵀr`` of ``½‖r‖²`` pointing out of the box.
-
-    Why. The tests project the residual off the base's Jacobian, as if the base could
-    move along every column; a held parameter cannot, and what the residual has along its
-    column is misfit the base is not allowed to absorb. On 0.272 s records the base
-    bends to the box's edges to take in an effect (an impact at c = 9.8: ‖W·r‖² = 169 σ_x²
-    at the fit, 3.0 σ_x² left after the projection over all 26 columns), and the
-    projection removed the evidence with the freedom.
-    """
-    width = np.maximum(upper - lower, 1e-300)
-    at_lo = (theta - lower <= rel * width) & (grad > 0)
-    at_hi = (upper - theta <= rel * width) & (grad < 0)
-    return np.asarray(at_lo | at_hi)
-
-
 def difference_sigma(x: Float[np.ndarray, " n"]) -> tuple[float, int]:
     """σ̂_x [m] of white displacement noise from the third difference of the recorded x
     (:func:`fricjax.output_error.noise_scale`, ``std(Δ³x)/√20``; the motion adds
@@ -578,8 +554,7 @@ def forward_select(
         fn = whitened_residual(problem, model, spec, wh)
         r_w = np.asarray(_eval(fn, jnp.asarray(theta)))
         j_w = _jacobian(fn, theta)
-        held = held_at_bounds(theta, spec.lower, spec.upper, j_w.T @ r_w)
-        q_base, sv, _ = np.linalg.svd(j_w[:, ~held], full_matrices=False)
+        q_base, sv, _ = np.linalg.svd(j_w, full_matrices=False)
         q_base = q_base[:, sv > 1e-10 * sv[0]]
         r_perp = project_out(q_base, r_w)
         dof = max(wh.dof - q_base.shape[1], 1)

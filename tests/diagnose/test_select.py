@@ -138,17 +138,6 @@ def test_difference_sigma_is_unbiased_on_smooth_motion_and_has_its_degrees_of_fr
     assert np.var(s2) == pytest.approx(2.0 / nu, rel=0.2)
 
 
-def test_held_at_bounds_marks_only_parameters_the_box_stops() -> None:
-    # ½‖r‖² decreases along −grad: a parameter at its lower bound with grad > 0 wants to go
-    # lower (held); at its lower bound with grad < 0 it would move inwards (free).
-    from fricjax.diagnose.select import held_at_bounds
-
-    lower, upper = np.zeros(5), np.ones(5)
-    theta = np.array([0.0, 0.0, 1.0, 1.0, 0.5])
-    grad = np.array([2.0, -2.0, -3.0, 3.0, 5.0])
-    assert held_at_bounds(theta, lower, upper, grad).tolist() == [True, False, True, False, False]
-
-
 def test_refit_starts_are_distinct_grid_maxima_led_by_the_best() -> None:
     # A 1-D frequency grid with peaks at 74 and 30 Hz, the uncentred statistic peaking at
     # 68 Hz, and a 2-D (location x width) grid: the best point first, the uncentred
