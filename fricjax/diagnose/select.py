@@ -363,8 +363,10 @@ def refit_starts(
     stats: np.ndarray, raw: np.ndarray, points: list[dict[str, float]], n: int = N_STARTS
 ) -> list[int]:
     """Grid points [indices] to start a candidate's refit from: the statistic's maximum,
-    the uncentred statistic's maximum, then the next highest maxima, at most ``n``, no two
-    neighbours on the grid (index distance ≤ 1 along every shape parameter).
+    the uncentred statistic's maximum, then the highest remaining grid points, at most
+    ``n``, none a grid neighbour of one already chosen (index distance ≤ 1 along every
+    shape parameter). They need not be local maxima (a broad peak's flank two steps out
+    can be chosen).
 
     Why. A frequency, a location or a width makes the refit's cost multimodal, and the
     grid's best point is not always in the true optimum's basin: a hidden 69 Hz harmonic on
