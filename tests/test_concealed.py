@@ -137,6 +137,35 @@ def test_same_seed_same_files(written: dict, paper_config: Config) -> None:
     assert other.recording.sha256() != written["manifests"][0]["cases"][1]["sha256"]
 
 
+def test_a_repeat_is_the_same_motion_with_new_noise(written: dict, paper_config: Config) -> None:
+    """The second recording of a case (generate.write_repeat): x_repeat − x is the difference
+    of two independent noise draws (std √2·σ_x, uncorrelated with the first draw), the
+    noise-free motion of the null case is the base plant's, and writing it twice gives the
+    same file and leaves the case's own recording as it was."""
+    folder = written["dirs"][0]
+    for i in (0, 1):
+        rec_path, truth = _truth(written, i)
+        before = _sha256(rec_path)
+        path = gen.write_repeat(folder, truth["case"])
+        first = _sha256(path)
+        path.unlink()
+        assert _sha256(gen.write_repeat(folder, truth["case"])) == first
+        assert _sha256(rec_path) == before
+        rec, again = read_recording(rec_path), read_recording(path)
+        np.testing.assert_array_equal(again.t, rec.t)
+        assert again.mass == rec.mass
+        diff = np.asarray(again.x) - np.asarray(rec.x)
+        sigma = truth["noise_std_m"]
+        assert np.std(diff) == pytest.approx(np.sqrt(2.0) * sigma, rel=0.1)
+        _, rng_noise = gen.case_rngs(written["specs"][i], SEED)
+        noise = rng_noise.normal(0.0, sigma, truth["n"])
+        # the repeat's own noise draw is not the case's: corr(x_repeat − x_clean, noise) ≈ 0
+        own = diff + noise
+        assert abs(np.corrcoef(own, noise)[0, 1]) < 4.0 / np.sqrt(truth["n"])
+    x_base, _ = gen.simulate_x(PAPER_MODEL, truth["base"], np.asarray(again.t), SUBSTEPS)
+    assert np.std(np.asarray(again.x) - x_base) == pytest.approx(sigma, rel=0.15)
+
+
 def test_equation_measure_hits_target(paper_config: Config) -> None:
     """Scaled to c_ee (what the score test sees): ‖(I − P_{J_w})·W·δr‖/σ_x recomputed from
     the recording and the harmonic's force law alone is the recorded c_ee and the target

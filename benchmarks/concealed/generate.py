@@ -925,6 +925,47 @@ def write_case(case: Case, out: Path) -> dict[str, Any]:
     }
 
 
+def repeat_recording(rec: Recording, truth: Mapping[str, Any]) -> Recording:
+    """A second ram of the same case: the same plant, drive and hidden effect (the same
+    noise-free motion), a fresh draw of the displacement noise.
+
+    The case's noise generator (:func:`case_rngs`) drew the recorded noise first; the repeat
+    takes its next ``n`` draws, so the case's own recording is unchanged and the repeat is
+    deterministic in (spec, seed). ``x_clean`` is recovered as ``x − noise`` (exact to the
+    rounding of one addition). What a test engineer has when a rig is rammed twice: the
+    diagnosis' held-out check scores the first recording's fit on it (``validation``),
+    which also judges local findings (a bump, an impact) whose place a split of one record
+    would leave out of the training or the test part.
+    """
+    spec = CaseSpec(
+        str(truth["effect"]), float(truth["level"]), float(truth["duration_s"]), int(truth["rep"])
+    )
+    _, rng_noise = case_rngs(spec, int(truth["seed"]))
+    n, std = int(truth["n"]), float(truth["noise_std_m"])
+    noise = rng_noise.normal(0.0, std, n)
+    again = rng_noise.normal(0.0, std, n)
+    return Recording(
+        t=rec.t,
+        x=(rec.x - noise) + again,
+        mass=rec.mass,
+        name=f"{rec.name}-repeat",
+        source=rec.source,
+        notes=f"second recording of {rec.name} (same plant and motion, new noise)",
+    )
+
+
+def write_repeat(data: Path, case_id: str) -> Path:
+    """``data/repeat/CASE.h5`` from ``data/CASE.h5`` and its truth (written once)."""
+    from fricjax.data.recording import read_recording
+
+    path = data / "repeat" / f"{case_id}.h5"
+    if not path.is_file():
+        truth = json.loads((data / "truth" / f"{case_id}.json").read_text())
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_recording(repeat_recording(read_recording(data / f"{case_id}.h5"), truth), path)
+    return path
+
+
 def _progress_line(i: int, total: int, case: Case) -> str:
     tr, spec = case.truth, case.spec
     return (

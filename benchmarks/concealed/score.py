@@ -157,16 +157,22 @@ def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
         "heldout_improvement",
         "heldout_untestable",
         "near_rest_caveat",
+        "rejected_candidate",
     )
     return {k: f.get(k) for k in keys if k in f}
 
 
 def diagnose_rows(
-    rows: Sequence[dict[str, Any]], data: str, results: str, skip_existing: bool = True
+    rows: Sequence[dict[str, Any]],
+    data: str,
+    results: str,
+    skip_existing: bool = True,
+    repeat: bool = False,
 ) -> list[dict]:
     """Diagnose each case in this process; one JSON per case in ``results`` (cases with one
     already are skipped when ``skip_existing``; a case another live process has claimed is
-    left to it). Never reads the truth files."""
+    left to it). ``repeat``: the held-out check scores on the case's second recording
+    (``DATA/repeat/CASE.h5``, :func:`generate.write_repeat`). Never reads the truth files."""
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.config import load_config
     from fricjax.data.recording import read_recording
@@ -190,8 +196,17 @@ def diagnose_rows(
         t0 = time.perf_counter()
         try:
             problem = build_problem(read_recording(path), cfg)
+            validation = (
+                build_problem(read_recording(Path(data) / "repeat" / row["recording"]), cfg)
+                if repeat
+                else None
+            )
             diag = diagnose(
-                problem, identify_settings=ident, settings=settings, recording=row["case"]
+                problem,
+                identify_settings=ident,
+                settings=settings,
+                validation=validation,
+                recording=row["case"],
             )
             js = diag.as_json()
             steps = diag.selection.steps
@@ -285,6 +300,7 @@ def run_all(
     resume: bool,
     reverse: bool = False,
     per_process: int = 0,
+    repeat: bool = False,
 ) -> dict[str, dict]:
     """Diagnose every row (skipping those already in ``results`` when ``resume``).
 
@@ -311,7 +327,7 @@ def run_all(
             max_workers=max(jobs, 1), mp_context=get_context("spawn"), max_tasks_per_child=1
         ) as pool:
             futures = [
-                pool.submit(diagnose_rows, batch, str(data), str(results), resume)
+                pool.submit(diagnose_rows, batch, str(data), str(results), resume, repeat)
                 for batch in batches
             ]
             for fut in futures:
@@ -319,14 +335,14 @@ def run_all(
                     done[res["case"]] = res
         return done
     if jobs <= 1 or len(todo) <= 1:
-        for res in diagnose_rows(todo, str(data), str(results), resume):
+        for res in diagnose_rows(todo, str(data), str(results), resume, repeat):
             done[res["case"]] = res
         return done
     # round robin: every worker walks the list in run order, lengths stay together
     chunks: list[list[dict]] = [todo[i::jobs] for i in range(jobs)]
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
         futures = [
-            pool.submit(diagnose_rows, chunk, str(data), str(results), resume)
+            pool.submit(diagnose_rows, chunk, str(data), str(results), resume, repeat)
             for chunk in chunks
             if chunk
         ]
@@ -401,6 +417,10 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     named = [f for f in findings if f["effect"] != UNEXPLAINED]
     row["named_findings"] = len(named)
     row["heldout"] = [f.get("heldout_improvement") for f in named]
+    # candidates the held-out check did not confirm (reported unexplained at their place)
+    row["rejected"] = [
+        f["rejected_candidate"]["effect"] for f in findings if f.get("rejected_candidate")
+    ]
     if effect in names:
         found = findings[names.index(effect)]
         params = found.get("params") or {}
@@ -853,6 +873,22 @@ def report(
                     ),
                 ],
                 ["  median held-out improvement", _g(float(np.median(held))) if held else "–"],
+                [
+                    "candidates the held-out check rejected (reported unexplained): "
+                    "all · the hidden effect · on nulls",
+                    " · ".join(
+                        str(n)
+                        for n in (
+                            sum(len(r.get("rejected", [])) for r in scored),
+                            sum(r["effect"] in r.get("rejected", []) for r in scored),
+                            sum(
+                                len(r.get("rejected", []))
+                                for r in scored
+                                if r["effect"] == gen.NULL
+                            ),
+                        )
+                    ),
+                ],
             ],
         ),
         "",
@@ -1173,6 +1209,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--note", default="", help="free text for the report's header")
     ap.add_argument(
+        "--repeat",
+        action="store_true",
+        help="give each diagnosis a second recording of its case (same plant and motion, "
+        "new noise) for the held-out check, instead of the last part of the record",
+    )
+    ap.add_argument(
         "--reverse",
         action="store_true",
         help="diagnose in reverse order (a second run on the same DATA meets the first)",
@@ -1193,6 +1235,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     load_start = machine()
     commit, status = git_state()
     rows = ensure_cases(data, specs, args.seed, args.measure, lambda m: print(m, flush=True))
+    if args.repeat:
+        for row in rows:
+            gen.write_repeat(data, row["case"])
     t_gen = time.time() - t_start
     if args.report_only:
         results = {}
@@ -1209,6 +1254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.resume,
             reverse=args.reverse,
             per_process=args.per_process,
+            repeat=args.repeat,
         )
         for row in rows:  # cases another run on the same folder finished meanwhile
             path = data / "diagnosis" / f"{row['case']}.json"
@@ -1252,6 +1298,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "replicates": str(args.reps),
         "seed": str(args.seed),
         "diagnose settings": "configs/paper.toml ([search], [anneal], [diagnose] defaults)",
+        "held-out check on": (
+            "a second recording of each case (same plant and motion, new noise draw; "
+            "generate.write_repeat), given to diagnose as its validation recording"
+            if args.repeat
+            else "the last 30 % of each record (fit on the first 70 %)"
+        ),
         ("machine (report assembled on)" if args.report_only else "machine"): (
             f"{load_start} at start; {machine()} at end"
         ),

@@ -117,6 +117,10 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
         lines += ["## Findings", ""]
         for i, f in enumerate(diag.findings, 1):
             params = ", ".join(f"{k} = {fmt(v, 4)}" for k, v in f["params"].items())
+            if "rejected_candidate" in f:
+                rej = f["rejected_candidate"]
+                fitted = ", ".join(f"{k} = {fmt(v, 4)}" for k, v in rej["params"].items())
+                params = f"as {rej['effect']} (not claimed): {fitted}"
             lines += [
                 f"{i}. **{f['effect']}** — {f['explanation']}",
                 f"   - where: {f['location']}",
