@@ -156,6 +156,9 @@ def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
         "p_value",
         "heldout_improvement",
         "heldout_untestable",
+        "heldout_split_improvement",
+        "heldout_split_untestable",
+        "heldout_confirmed",
         "near_rest_caveat",
         "rejected_candidate",
     )
@@ -417,6 +420,9 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     named = [f for f in findings if f["effect"] != UNEXPLAINED]
     row["named_findings"] = len(named)
     row["heldout"] = [f.get("heldout_improvement") for f in named]
+    # confirmed: a gain in every held-out check that reaches the finding's place (the
+    # record's last part, and the second recording under --repeat); None: not reported
+    row["confirmed"] = [f.get("heldout_confirmed") for f in named]
     # candidates the held-out check did not confirm (reported unexplained at their place)
     row["rejected"] = [
         f["rejected_candidate"]["effect"] for f in findings if f.get("rejected_candidate")
@@ -608,7 +614,11 @@ def report(
     mid = [r for r in eff_rows if r["level"] == 5]
     fd = sum(r["detected"] for r in nulls)
     named_all = [h for r in all_eff + nulls for h in r["heldout"]]
-    with_gain = sum(1 for h in named_all if h is not None and h > 0)
+    with_gain = sum(
+        (c if c is not None else h is not None and h > 0)
+        for r in all_eff + nulls
+        for h, c in zip(r["heldout"], r.get("confirmed") or [None] * len(r["heldout"]), strict=True)
+    )
     walls_1s = [r["wall_s"] for r in scored if abs(r["duration"] - 1.0) < 1e-9 and r["wall_s"]]
     med_1s = float(np.median(walls_1s)) if walls_1s else math.nan
 
@@ -861,7 +871,7 @@ def report(
                     else "–",
                 ],
                 ["named findings", str(len(named_all))],
-                ["  with held-out improvement > 0", f"{with_gain}"],
+                ["  confirmed: a gain in every held-out check that reaches it", f"{with_gain}"],
                 [
                     "  without, whose place the held-out part never reaches",
                     str(

@@ -152,6 +152,15 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
             f"Decided by the {h['metric']} (the metric in which the noise model is white).",
             "",
         ]
+        if "split" in h:
+            hs = h["split"]
+            lines += [
+                f"Also on the {hs['on']} (fitted on the rest; another part of the motion, "
+                "where a term that only imitates the missing physics does not carry over): "
+                f"{h['metric']} {100 * hs['improvement']:+.1f} %. A finding must gain in "
+                "every check that reaches its place.",
+                "",
+            ]
         named = [f for f in diag.findings if "heldout_improvement" in f]
         if named:
             lines += [
@@ -169,6 +178,11 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
 
 def _heldout_verdict(finding: dict) -> str:
     gain = f"{100 * finding['heldout_improvement']:+.1f} %"
+    if "heldout_split_improvement" in finding:
+        split = f"{100 * finding['heldout_split_improvement']:+.1f} %"
+        if finding.get("heldout_split_untestable"):
+            split += " (untested there)"
+        gain += f" on the second recording, {split} on the record's last part"
     if finding.get("heldout_untestable"):
         return (
             f"{gain} (untested: {finding['heldout_untestable']}; a second recording that "

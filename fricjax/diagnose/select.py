@@ -34,7 +34,7 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -108,6 +108,10 @@ class Step:
     overlap: float  # |cos| between the two best candidates' signatures
     runner_up: str
     bic_base: float
+    # candidates that passed the tests but not the held-out check (``confirm``), each with
+    # what the check reported; and the chosen one's report
+    rejected: list[tuple[Refit, dict[str, Any]]] = field(default_factory=list)
+    heldout: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -532,6 +536,8 @@ def forward_select(
     eiv: bool = True,
     starts: Sequence[np.ndarray] = (),
     model_free_sigma: bool = True,
+    confirm: Callable[[tuple[Model, ParamSpec, np.ndarray], Refit], tuple[bool, dict[str, Any]]]
+    | None = None,
 ) -> Selection:
     """Add catalogue terms one at a time while they keep paying (module docstring);
     ``noise``: the noise model of :func:`~fricjax.diagnose.locate.default_whitener`;
@@ -540,7 +546,12 @@ def forward_select(
     ``starts``: further start points [d] of the base's GLS fit, the lowest RSS_w is kept
     (the whitener is always that of ``theta``); ``model_free_sigma``: where the residual
     leaves no more degrees of freedom than the base has parameters, σ̂ of the tests is
-    :func:`difference_sigma` of the recorded x (F law) instead of the residual's (Beta)."""
+    :func:`difference_sigma` of the recorded x (F law) instead of the residual's (Beta).
+
+    ``confirm(current, refit) -> (ok, report)``: the held-out check, part of the stopping
+    rule. A candidate that passes the tests is added only if ``ok``; otherwise it is kept in
+    :attr:`Step.rejected` (never offered again) and the next candidate that passes the tests
+    at this step is asked; a step with none left ends the selection."""
     model, spec = problem.model, problem.spec
     wh = default_whitener(problem, theta, noise)
     # A base left in a poorer minimum than the data allow leaves its misfit in every
@@ -649,28 +660,47 @@ def forward_select(
             refit_candidate(problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base)
             for sc in [sc for sc in eligible if sc.effect not in done][:n_refit]
         ]
-        best = max(refits, key=lambda r: r.delta_bic)
+        p_of = {sc.effect: sc.p_value for sc in scores}
+        by_gain = sorted(refits, key=lambda r: -r.delta_bic)
+        passes = [
+            p_of[rf.effect] < alpha / len(pool) and rf.delta_bic > min_delta_bic for rf in by_gain
+        ]
+        # the best refit decides whether the step adds anything; the others that pass are
+        # asked only when the held-out check rejects the one before them
+        passing = [rf for rf, ok in zip(by_gain, passes, strict=True) if ok] if passes[0] else []
+        rejected: list[tuple[Refit, dict[str, Any]]] = []
+        chosen, report = None, {}
+        for rf in passing[:1] if confirm is None else passing:
+            ok, report = (True, {}) if confirm is None else confirm((model, spec, theta), rf)
+            if ok:
+                chosen = rf
+                break
+            rejected.append((rf, report))
+            used.add(rf.effect)
+        best = chosen or max(refits, key=lambda r: r.delta_bic)
         best_score = next(sc for sc in scores if sc.effect == best.effect)
         others = [
             sc for sc in sorted(scores, key=lambda sc: -lin[sc.effect]) if sc.effect != best.effect
         ]
         overlap = signature_overlap(best_score.direction, others[0].direction) if others else 0.0
-        accept = best_score.p_value < alpha / len(pool) and best.delta_bic > min_delta_bic
         steps.append(
             Step(
                 scores,
                 refits,
-                best if accept else None,
+                chosen,
                 best_score.p_value,
                 overlap,
                 others[0].effect if others else "",
                 bic_base,
+                rejected,
+                report if chosen is not None else {},
             )
         )
         for sc in scores:
             sc.delta_bic_linear = float(lin[sc.effect])
-        if not accept:
+        if chosen is None:
             break
+        best = chosen
         used.add(best.effect)
         # the whitener stays that of the base fit, so every RSS_w and BIC is comparable
         model, spec, theta = best.model, best.spec, best.theta

@@ -13,14 +13,8 @@ import fricjax.diagnose.catalogue as cat
 from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.locate import default_whitener
-from fricjax.diagnose.run import (
-    _rejected,
-    _split,
-    first_rejected,
-    heldout_check,
-    heldout_upto,
-)
-from fricjax.diagnose.select import whitened_residual
+from fricjax.diagnose.run import Confirm, _rejected, _split, heldout_check, heldout_judged
+from fricjax.diagnose.select import forward_select, whitened_residual
 from fricjax.problem import Problem, build_problem
 
 HARMONIC = {"harm_A": 60.0, "harm_B": 0.0, "harm_f": 37.0}
@@ -85,43 +79,100 @@ def test_the_held_out_part_is_whitened_as_rows_of_the_whole_record(cases: dict) 
     assert 0.5 < float(r_w @ r_w) / (wh.dof * sigma2) < 2.0
 
 
-def test_the_summary_up_to_a_step_is_that_step_s_model(checks: dict) -> None:
-    # All steps kept: the summary is the check's own; none kept: the base against itself.
-    h = checks[True]
-    whole = heldout_upto(h, 1)
-    for key in ("rss_w_after", "ems_after", "improvement", "rss_w_improvement"):
-        assert whole[key] == pytest.approx(h[key], rel=1e-12)
-    assert whole["step_improvements"] == h["step_improvements"]
-    none = heldout_upto(h, 0)
-    assert none["rss_w_after"] == h["rss_w_before"] and none["ems_after"] == h["ems_before"]
-    assert none["improvement"] == 0.0 and none["kept_steps"] == 0
-
-
 def _named(gain: float, untestable: str = "") -> dict:
-    f = {
-        "effect": "position_bump",
-        "location": {"position_m": [0.02, 0.03]},
-        "params": {"bump_A": 300.0},
-        "delta_bic": 21.5,
-        "heldout_improvement": gain,
-    }
+    f = {"effect": "position_bump", "heldout_improvement": gain}
     return f | ({"heldout_untestable": untestable} if untestable else {})
 
 
-def test_the_first_finding_the_held_out_data_judge_and_reject_stops_the_chain() -> None:
-    # gains <= 0 reject; a finding the test part cannot reach is not judged, whatever its sign
-    assert first_rejected([_named(0.2), _named(-0.3, "never reaches"), _named(0.0)]) == 2
-    assert first_rejected([_named(-1e-9), _named(0.5)]) == 0
-    assert first_rejected([_named(0.1), _named(-0.4, "never reaches")]) == 2
-    assert first_rejected([]) == 0
+def test_only_checks_that_reach_a_finding_judge_it() -> None:
+    # A second recording of the same motion favoured a wrong name (+26 %) that the record's
+    # last part refuted (-31 %): both judge it. A bump the last part never reaches is judged
+    # by the second recording alone.
+    wrong = _named(0.26) | {"heldout_split_improvement": -0.31}
+    assert heldout_judged(wrong) == {
+        "heldout_improvement": 0.26,
+        "heldout_split_improvement": -0.31,
+    }
+    bump = _named(0.38) | {
+        "heldout_split_improvement": -0.20,
+        "heldout_split_untestable": "never reaches",
+    }
+    assert heldout_judged(bump) == {"heldout_improvement": 0.38}
+    assert heldout_judged(_named(-0.5, "never reaches")) == {}
 
 
-def test_a_rejected_candidate_is_reported_unexplained_at_its_place() -> None:
-    f = _named(-0.31)
-    out = _rejected(f, SimpleNamespace(p_value=2e-4))
-    assert out["effect"] == "unexplained"
-    assert out["location"] == f["location"]
-    assert out["rejected_candidate"]["effect"] == "position_bump"
-    assert out["rejected_candidate"]["heldout_improvement"] == -0.31
-    assert out["delta_bic"] == 21.5 and out["p_value"] == 2e-4
-    assert "-31.0 %" in out["explanation"]
+def _harmonic_refit(problem: Problem) -> SimpleNamespace:
+    ext = cat.candidate("extra_harmonic").extend_problem(problem, {"harm_f": 37.0})
+    named = {**PAPER_TRUTH, **HARMONIC}
+    theta = ext.spec.flatten({k: named[k] for k in ext.spec.free_names})
+    params = {k: named[k] for k in HARMONIC}
+    return SimpleNamespace(
+        effect="extra_harmonic",
+        model=ext.model,
+        spec=ext.spec,
+        theta=theta,
+        params=params,
+        delta_bic=80.0,
+    )
+
+
+def test_confirm_asks_the_check_and_caches_each_model_s_fit(cases: dict) -> None:
+    # The hidden 37 Hz harmonic pays on the last 30 %: confirmed, with the same gain as the
+    # whole check reports; the summary of the chain afterwards refits nothing.
+    problem, _ = cases[True]
+    base = (problem.model, problem.spec, problem.theta(PAPER_TRUTH))
+    confirm = Confirm(problem, 0.3, None, "auto")
+    refit = _harmonic_refit(problem)
+    ok, report = confirm(base, refit)
+    assert ok and report["heldout_confirmed"]
+    assert report["heldout_improvement"] > 0.2
+    judge = confirm.judges[0]
+    assert len(judge._scores) == 2
+    summary = judge.summary([base, (refit.model, refit.spec, refit.theta)])
+    assert len(judge._scores) == 2
+    assert summary["step_improvements"] == [pytest.approx(report["heldout_improvement"])]
+
+
+def test_a_rejected_candidate_is_reported_unexplained_at_its_place(cases: dict) -> None:
+    problem, _ = cases[True]
+    refit = _harmonic_refit(problem)
+    report = {"heldout_improvement": 0.26, "heldout_split_improvement": -0.31}
+    out = _rejected(problem, refit, 2e-4, report | {"heldout_confirmed": False})
+    assert out["effect"] == "unexplained" and out["params"] == {}
+    assert out["location"] == {"frequency_hz": 37.0}
+    assert out["rejected_candidate"] == {
+        "effect": "extra_harmonic",
+        "params": refit.params,
+        **report,
+    }
+    assert out["delta_bic"] == 80.0 and out["p_value"] == 2e-4
+    assert "-31.0 %" in out["explanation"]  # the worst check that judged it
+
+
+def test_forward_selection_asks_the_held_out_check_before_it_adds_a_term(
+    cases: dict,
+) -> None:
+    # The visible harmonic passes every test; a check that refuses it leaves the base model
+    # and keeps the candidate, with the check's report, among the step's rejected.
+    problem, _ = cases[True]
+    asked: list[str] = []
+
+    def refuse(current: tuple, refit: object) -> tuple[bool, dict]:
+        asked.append(refit.effect)
+        assert current[0] is problem.model
+        return False, {"heldout_improvement": -0.4}
+
+    sel = forward_select(
+        problem,
+        problem.theta(PAPER_TRUTH),
+        candidates=[cat.candidate("extra_harmonic")],
+        n_mc=400,
+        confirm=refuse,
+    )
+    assert asked == ["extra_harmonic"]
+    (step,) = sel.steps
+    assert step.chosen is None and sel.model is problem.model
+    ((rf, report),) = step.rejected
+    assert rf.effect == "extra_harmonic" and rf.delta_bic > 10
+    assert abs(rf.params["harm_f"] - 37.0) < 0.5
+    assert report == {"heldout_improvement": -0.4}
