@@ -88,7 +88,7 @@ from jaxtyping import Array, Float
 
 import fricjax  # noqa: F401  (float64 on; must precede jax use)
 from fricjax.config import Config, load_config
-from fricjax.data.recording import Recording, write_recording
+from fricjax.data.recording import Recording, read_recording, write_recording
 from fricjax.data.twin import DEFAULT_NOISE_STD, PAPER_MODEL, PAPER_TRUTH
 from fricjax.diagnose.catalogue import CATALOGUE, FrictionDrift, candidate, ranges
 from fricjax.errors import FricjaxError, where
@@ -954,11 +954,14 @@ def repeat_recording(rec: Recording, truth: Mapping[str, Any]) -> Recording:
     )
 
 
-def write_repeat(data: Path, case_id: str) -> Path:
-    """``data/repeat/CASE.h5`` from ``data/CASE.h5`` and its truth (written once)."""
-    from fricjax.data.recording import read_recording
+def repeat_path(data: Path, case_id: str) -> Path:
+    """Where the second recording of case ``case_id`` lives: ``data/repeat/CASE.h5``."""
+    return Path(data) / "repeat" / f"{case_id}.h5"
 
-    path = data / "repeat" / f"{case_id}.h5"
+
+def write_repeat(data: Path, case_id: str) -> Path:
+    """:func:`repeat_path` from ``data/CASE.h5`` and its truth (written once)."""
+    path = repeat_path(data, case_id)
     if not path.is_file():
         truth = json.loads((data / "truth" / f"{case_id}.json").read_text())
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -200,7 +200,7 @@ def diagnose_rows(
         try:
             problem = build_problem(read_recording(path), cfg)
             validation = (
-                build_problem(read_recording(Path(data) / "repeat" / row["recording"]), cfg)
+                build_problem(read_recording(gen.repeat_path(Path(data), row["case"])), cfg)
                 if repeat
                 else None
             )

@@ -620,7 +620,11 @@ def default_whitener(
 
 
 @eqx.filter_jit(compiler_options=FAST_COMPILE)
-def _jacfwd(fn: Any, theta: Array) -> Array:
+def compiled_jacfwd(fn: Any, theta: Array) -> Array:
+    """``jax.jacfwd(fn)(theta)`` under ``eqx.filter_jit`` (the arrays inside ``fn`` are
+    traced, not baked in) with the search's fast-compile options: the diagnosis' Jacobians
+    run once per record and candidate, so compile time is what counts. Shared by
+    :func:`jacobian` and the selection's whitened Jacobians (one compilation cache)."""
     return jax.jacfwd(fn)(theta)
 
 
@@ -630,7 +634,7 @@ def jacobian(problem: Problem, theta: Float[np.ndarray, " d"]) -> Float[np.ndarr
     theta = jnp.asarray(theta, dtype=jnp.float64)
     if theta.shape[0] == 0:
         return np.zeros((problem.n, 0))
-    return np.asarray(_jacfwd(problem.residual_fn, theta))
+    return np.asarray(compiled_jacfwd(problem.residual_fn, theta))
 
 
 def locate_plan(

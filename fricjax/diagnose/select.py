@@ -56,7 +56,13 @@ from fricjax.diagnose.errors_in_variables import (
     score_bias,
     with_signals,
 )
-from fricjax.diagnose.locate import default_whitener, max_score_null, project_out, score_pvalue
+from fricjax.diagnose.locate import (
+    compiled_jacfwd,
+    default_whitener,
+    max_score_null,
+    project_out,
+    score_pvalue,
+)
 from fricjax.diagnose.whiten import Whitener, WhitenOp, robust_sigma
 from fricjax.model.system import Model
 from fricjax.output_error import noise_scale
@@ -168,12 +174,7 @@ _fast_jit = eqx.filter_jit(compiler_options=FAST_COMPILE)
 
 
 def _jacobian(fn: Any, theta: np.ndarray) -> np.ndarray:
-    return np.asarray(_jacfwd(fn, jnp.asarray(theta)))
-
-
-@_fast_jit
-def _jacfwd(fn: Any, theta: Array) -> Array:
-    return jax.jacfwd(fn)(theta)
+    return np.asarray(compiled_jacfwd(fn, jnp.asarray(theta)))
 
 
 @_fast_jit
@@ -546,8 +547,9 @@ def forward_select(
     eiv: bool = True,
     starts: Sequence[np.ndarray] = (),
     model_free_sigma: bool = True,
-    confirm: Callable[[tuple[Model, ParamSpec, np.ndarray], Refit], tuple[bool, dict[str, Any]]]
-    | None = None,
+    confirm: Callable[
+        [tuple[Model, ParamSpec, np.ndarray], Refit], tuple[bool, dict[str, Any]]
+    ] = lambda current, refit: (True, {}),
 ) -> Selection:
     """Add catalogue terms one at a time while they keep paying (module docstring);
     ``noise``: the noise model of :func:`~fricjax.diagnose.locate.default_whitener`;
@@ -559,7 +561,8 @@ def forward_select(
     :func:`difference_sigma` of the recorded x (F law) instead of the residual's (Beta).
 
     ``confirm(current, refit) -> (ok, report)``: the held-out check, part of the stopping
-    rule. A candidate that passes the tests is added only if ``ok``; otherwise it is kept in
+    rule (default: none, every candidate that passes the tests is ``ok``). A candidate that
+    passes the tests is added only if ``ok``; otherwise it is kept in
     :attr:`Step.rejected` (never offered again) and the next candidate that passes the tests
     at this step is asked; a step with none left ends the selection."""
     model, spec = problem.model, problem.spec
@@ -681,20 +684,20 @@ def forward_select(
         rejected: list[tuple[Refit, dict[str, Any]]] = []
         chosen, report = None, {}
         direction = {sc.effect: sc.direction for sc in scores}
-        for rf in passing[:1] if confirm is None else passing:
+        for rf in passing:
             same = max(
                 (signature_overlap(direction[rf.effect], direction[r.effect]) for r, _ in rejected),
                 default=0.0,
             )
             if same > SAME_STRUCTURE:
                 continue
-            ok, report = (True, {}) if confirm is None else confirm((model, spec, theta), rf)
+            ok, report = confirm((model, spec, theta), rf)
             if ok:
                 chosen = rf
                 break
             rejected.append((rf, report))
             used.add(rf.effect)
-        best = chosen or max(refits, key=lambda r: r.delta_bic)
+        best = chosen or by_gain[0]
         best_score = next(sc for sc in scores if sc.effect == best.effect)
         others = [
             sc for sc in sorted(scores, key=lambda sc: -lin[sc.effect]) if sc.effect != best.effect
@@ -717,8 +720,7 @@ def forward_select(
             sc.delta_bic_linear = float(lin[sc.effect])
         if chosen is None:
             break
-        best = chosen
-        used.add(best.effect)
+        used.add(chosen.effect)
         # the whitener stays that of the base fit, so every RSS_w and BIC is comparable
-        model, spec, theta = best.model, best.spec, best.theta
+        model, spec, theta = chosen.model, chosen.spec, chosen.theta
     return Selection(steps, model, spec, theta, base_theta, wh, sigma)
