@@ -158,6 +158,7 @@ def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
         "heldout_untestable",
         "heldout_split_improvement",
         "heldout_split_untestable",
+        "heldout_cv_improvement",
         "heldout_confirmed",
         "near_rest_caveat",
         "rejected_candidate",
@@ -423,6 +424,8 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
     # confirmed: a gain in every held-out check that reaches the finding's place (the
     # record's last part, and the second recording under --repeat); None: not reported
     row["confirmed"] = [f.get("heldout_confirmed") for f in named]
+    # the cross-validation's gain, where no time split reached the finding (None otherwise)
+    row["cv"] = [f.get("heldout_cv_improvement") for f in named]
     # candidates the held-out check did not confirm (reported unexplained at their place)
     row["rejected"] = [
         f["rejected_candidate"]["effect"] for f in findings if f.get("rejected_candidate")
@@ -873,9 +876,30 @@ def report(
                 ["named findings", str(len(named_all))],
                 ["  confirmed: a gain in every held-out check that reaches it", f"{with_gain}"],
                 [
+                    "  judged by cross-validation over the whitened coordinates (no time "
+                    "split reaches their place): all · confirmed",
+                    " · ".join(
+                        str(n)
+                        for n in (
+                            sum(c is not None for r in scored for c in r.get("cv") or []),
+                            sum(c is not None and c > 0 for r in scored for c in r.get("cv") or []),
+                        )
+                    ),
+                ],
+                [
                     "  not judged: the held-out part never reaches their place (their "
-                    "gain there is only the base's extrapolation)",
-                    str(sum(bool(u) for r in scored for u in r.get("untestable") or [])),
+                    "gain there is only the base's extrapolation) and no cross-validation ran",
+                    str(
+                        sum(
+                            bool(u) and c is None
+                            for r in scored
+                            for u, c in zip(
+                                r.get("untestable") or [],
+                                r.get("cv") or [None] * len(r.get("untestable") or []),
+                                strict=True,
+                            )
+                        )
+                    ),
                 ],
                 ["  median held-out improvement", _g(float(np.median(held))) if held else "–"],
                 [

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
+from fricjax.diagnose.run import CV_FOLDS
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt, format_table
 
@@ -184,6 +185,15 @@ def _heldout_verdict(finding: dict) -> str:
             split += " (untested there)"
         gain += f" on the second recording, {split} on the record's last part"
     if finding.get("heldout_untestable"):
+        if finding.get("heldout_cv_improvement") is not None:
+            cv = f"{100 * finding['heldout_cv_improvement']:+.1f} %"
+            verdict = "confirmed" if finding.get("heldout_confirmed") else "NOT confirmed"
+            return (
+                f"{gain} (untested: {finding['heldout_untestable']}); judged instead by "
+                f"{CV_FOLDS}-fold cross-validation over the record's whitened coordinates: "
+                f"{cv} ({verdict}; a second recording that passes there, --validation, is "
+                "the stronger test)"
+            )
         return (
             f"{gain} (untested: {finding['heldout_untestable']}; a second recording that "
             "passes there, --validation, can confirm it)"
