@@ -15,7 +15,7 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
   The family statistic is ``max_θ S``; its p-value comes from a Monte Carlo of the same max
   under H0 (the look-elsewhere effect over the grid is thus calibrated).
 * Changes of the friction law itself (``Candidate.by_refit``: Stribeck drop and shape,
-  asymmetry, quadratic drag) are tested by the likelihood ratio of a refit instead,
+  asymmetry, quadratic drag, presliding lag) are tested by the likelihood ratio of a refit instead,
   ``LR = (RSS_w(base) − RSS_w(base+term))/σ̂²``, calibrated by the same null as the score
   (Wilks: under H0 LR and S agree to first order), where the record leaves more residual
   degrees of freedom than the base has parameters. The base's own nonlinear friction
