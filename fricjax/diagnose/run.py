@@ -407,7 +407,6 @@ class CrossValidation:
         perm = np.random.default_rng(seed).permutation(q.shape[1])
         m = q.shape[1] // folds
         self.folds = [np.sort(perm[j * m : (j + 1) * m]) for j in range(folds)]
-        self.on = f"{folds}-fold cross-validation over the record's whitened coordinates"
         self._scores: dict[int, tuple[Model, float]] = {}
 
     def score(self, fitted: tuple[Model, ParamSpec, np.ndarray]) -> float:
@@ -419,6 +418,9 @@ class CrossValidation:
         inner = whitened_residual(with_model(self.problem, model, spec), model, spec, self.wh)
         all_idx = np.arange(self.basis.shape[1])
         total = 0.0
+        # One compiled LM run once per fold. The folds vmapped into one LM (jax.vmap over
+        # the rows) gave the same gains and was slower, as every fold then runs until the
+        # slowest stops: 1 s twin, two models, 25.6 s cold / 12.4 s warm against 8.3 / 2.4.
         for test in self.folds:
             train = np.setdiff1d(all_idx, test)
             fit = FoldResidual(inner, jnp.asarray(self.basis[:, train].T))
