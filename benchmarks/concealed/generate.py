@@ -328,6 +328,19 @@ def refit_check(
     return best
 
 
+def with_true_term(
+    problem: Problem, effect: str, base: Mapping[str, float], params: Mapping[str, float]
+) -> tuple[Problem, np.ndarray]:
+    """``problem`` extended by the catalogue term of ``effect`` at its shape in ``params``,
+    and its parameter vector [d] at ``base`` + ``params``."""
+    cand = candidate(effect)
+    nl = {q.name for q in cand.nonlinear_params(problem)}
+    shape = {k: float(v) for k, v in params.items() if k in nl}
+    ext = cand.extend_problem(problem, shape or None)
+    named = {**base, **params}
+    return ext, ext.spec.flatten({k: v for k, v in named.items() if k in ext.spec})
+
+
 class EquationErrorView:
     """What the diagnosis' score test sees of an effect on one recording.
 
@@ -360,12 +373,7 @@ class EquationErrorView:
 
     def signature(self, effect: str, params: Mapping[str, float]) -> np.ndarray:
         """``δr`` [n] in newtons."""
-        cand = candidate(effect)
-        nl = {q.name for q in cand.nonlinear_params(self.problem)}
-        shape = {k: float(v) for k, v in params.items() if k in nl}
-        ext = cand.extend_problem(self.problem, shape or None)
-        named = {**self.base, **params}
-        theta = ext.spec.flatten({k: v for k, v in named.items() if k in ext.spec})
+        ext, theta = with_true_term(self.problem, effect, self.base, params)
         return ext.residual(theta) - self.r0
 
     def absorbing_step(self, effect: str, params: Mapping[str, float]) -> np.ndarray:

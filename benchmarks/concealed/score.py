@@ -520,7 +520,6 @@ def oracle_gain(truth: dict[str, Any], path: Path) -> dict[str, float] | None:
     this recording, whatever c says: c is measured on the noise-free record, where the
     regressors (v, a) carry no noise. Scoring only: reads the truth.
     """
-    from fricjax.diagnose.catalogue import candidate
     from fricjax.diagnose.locate import default_whitener
     from fricjax.diagnose.run import with_rest
     from fricjax.diagnose.select import bic, gls_fit
@@ -533,12 +532,8 @@ def oracle_gain(truth: dict[str, Any], path: Path) -> dict[str, float] | None:
     problem = with_rest(problem, theta0)
     wh = default_whitener(problem, theta0)
     theta_b, rss_b = gls_fit(problem, problem.model, problem.spec, theta0, wh)
-    cand = candidate(effect)
-    nonlinear = {q.name for q in cand.nonlinear_params(problem)}
-    shape = {k: float(v) for k, v in truth["params"].items() if k in nonlinear}
-    ext = cand.extend_problem(problem, shape or None)
+    ext, start = gen.with_true_term(problem, effect, truth["base"], truth["params"])
     named = {**truth["base"], **truth["params"]}
-    start = ext.spec.flatten({k: v for k, v in named.items() if k in ext.spec})
     # also from the base's own optimum, with the term at its true size and at its null
     # (LM never ends above its start, so the nested fit is never worse than the base)
     polished = dict(zip(problem.spec.free_names, theta_b, strict=True))
