@@ -515,6 +515,12 @@ def difference_sigma(x: Float[np.ndarray, " n"]) -> tuple[float, int]:
     return noise_scale(x), max(nu, 1)
 
 
+# Residual degrees of freedom a model must leave for its σ̂² and its mismatch maps
+# (:func:`~fricjax.diagnose.locate.locate_plan` needs 2): on a 0.272 s record (48 whitened
+# dimensions, some of them the samples at rest) a third term once left 1, and the
+# diagnosis failed in its final maps instead of naming two terms.
+MIN_DOF_LEFT = 2
+
 # A candidate whose signature overlaps a refused one's by more than this (|cos| of their
 # whitened, projected signatures) would only re-explain the structure the held-out check
 # refused (a 2 s record with hidden quadratic drag: drag refused at -8.9 % on the last
@@ -676,7 +682,10 @@ def forward_select(
         p_of = {sc.effect: sc.p_value for sc in scores}
         by_gain = sorted(refits, key=lambda r: -r.delta_bic)
         passes = [
-            p_of[rf.effect] < alpha / len(pool) and rf.delta_bic > min_delta_bic for rf in by_gain
+            p_of[rf.effect] < alpha / len(pool)
+            and rf.delta_bic > min_delta_bic
+            and wh.dof - rf.spec.n_free >= MIN_DOF_LEFT
+            for rf in by_gain
         ]
         # the best refit decides whether the step adds anything; the others that pass are
         # asked only when the held-out check rejects the one before them

@@ -110,6 +110,30 @@ def test_every_visible_effect_is_named(paper_config: Config, effect: str) -> Non
     _check_visible(paper_config, effect)
 
 
+@pytest.mark.slow
+def test_a_term_that_leaves_too_few_degrees_of_freedom_is_not_added(
+    paper_config: Config, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The visible impact is named by default (test above); asked to leave more residual
+    degrees of freedom than the record has beyond the base's, forward selection adds no
+    term rather than one whose σ̂² and maps could not be formed."""
+    import fricjax.diagnose.select as select
+
+    term, params = VISIBLE["impact"]
+    model, truth = PAPER_MODEL.with_terms([term]), {**PAPER_TRUTH, **params}
+    problem = build_problem(
+        paper_twin(duration=1.0, seed=3, model=model, truth=truth)[0], paper_config
+    )
+    monkeypatch.setattr(select, "MIN_DOF_LEFT", 10**6)
+    diag = diagnose(
+        problem, identify_settings=_settings(paper_config), settings=DiagnoseSettings(**FAST)
+    )
+    assert not [f for f in diag.findings if f["effect"] != "unexplained"]
+    assert diag.selection.model.terms == problem.model.terms
+    step = diag.selection.steps[0]
+    assert step.chosen is None and step.refits and step.refits[0].delta_bic > 10
+
+
 def _check_visible(config: Config, effect: str, second_seed: int | None = None) -> Any:
     term, params = VISIBLE[effect]
 
