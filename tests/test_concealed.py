@@ -226,3 +226,36 @@ def test_amplitude_search_stays_in_the_first_bracket_of_a_non_monotone_concealme
 def test_amplitude_search_on_a_linear_concealment_takes_the_linear_guess() -> None:
     out = gen.scale_to(5.0, 0.1, 10.0, lambda a: (3.0 * a, None, None))
     assert out.reached and out.evals == 2 and abs(out.a - 5.0 / 3.0) < 1e-12
+
+
+def _load_scorer():
+    # score.py imports its sibling generate.py by name, as it does when run as a script
+    sys.path.insert(0, str(ROOT / "benchmarks" / "concealed"))
+    try:
+        path = ROOT / "benchmarks" / "concealed" / "score.py"
+        spec = importlib.util.spec_from_file_location("concealed_score", path)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module
+        spec.loader.exec_module(module)
+        return module
+    finally:
+        sys.path.pop(0)
+
+
+def test_null_calibration_tells_uniform_from_skewed_p_values() -> None:
+    """The scorer's calibration check: uniform p-values pass, p² (too many small ones) does
+    not; a friction-law candidate counts as a likelihood ratio on 1 s, a score on 0.272 s."""
+    score = _load_scorer()
+    rng = np.random.default_rng(0)
+    uniform = [{"duration": 1.0, "step1_p": {"impact": p}} for p in rng.uniform(size=400)]
+    (c,) = score.null_calibration(uniform)
+    assert (c["kind"], c["span"], c["n"]) == ("score", "1-2 s", 400)
+    assert abs(c["median"] - 0.5) < 0.06 and abs(c["below_05"] - 0.05) < 0.03
+    assert c["ks_p"] > 0.01
+    skewed = [{"duration": 1.0, "step1_p": {"stribeck": p**2}} for p in rng.uniform(size=400)]
+    (s,) = score.null_calibration(skewed)
+    assert s["kind"] == "likelihood ratio"
+    assert s["below_05"] > 0.15 and s["ks_p"] < 1e-6
+    (short,) = score.null_calibration([{"duration": 0.272, "step1_p": {"stribeck": 0.3}}])
+    assert (short["kind"], short["span"]) == ("score", "0.272 s")
