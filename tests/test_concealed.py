@@ -32,17 +32,25 @@ LEVEL = 5.0
 SEED = 3
 
 
-def _load_generator():
-    path = ROOT / "benchmarks" / "concealed" / "generate.py"
-    spec = importlib.util.spec_from_file_location("concealed_generate", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their module by name
-    spec.loader.exec_module(module)
-    return module
+def _load(script: str):
+    """A script of benchmarks/concealed as a module; it imports its siblings by name (the
+    scorer imports generate), as when it runs as a script."""
+    folder = ROOT / "benchmarks" / "concealed"
+    sys.path.insert(0, str(folder))
+    try:
+        spec = importlib.util.spec_from_file_location(
+            f"concealed_{script}", folder / f"{script}.py"
+        )
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # dataclasses resolve their module by name
+        spec.loader.exec_module(module)
+        return module
+    finally:
+        sys.path.pop(0)
 
 
-gen = _load_generator()
+gen = _load("generate")
 
 
 def _sha256(path: Path) -> str:
@@ -228,25 +236,10 @@ def test_amplitude_search_on_a_linear_concealment_takes_the_linear_guess() -> No
     assert out.reached and out.evals == 2 and abs(out.a - 5.0 / 3.0) < 1e-12
 
 
-def _load_scorer():
-    # score.py imports its sibling generate.py by name, as it does when run as a script
-    sys.path.insert(0, str(ROOT / "benchmarks" / "concealed"))
-    try:
-        path = ROOT / "benchmarks" / "concealed" / "score.py"
-        spec = importlib.util.spec_from_file_location("concealed_score", path)
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        sys.path.pop(0)
-
-
 def test_null_calibration_tells_uniform_from_skewed_p_values() -> None:
     """The scorer's calibration check: uniform p-values pass, p² (too many small ones) does
     not; a friction-law candidate counts as a likelihood ratio on 1 s, a score on 0.272 s."""
-    score = _load_scorer()
+    score = _load("score")
     rng = np.random.default_rng(0)
     uniform = [{"duration": 1.0, "step1_p": {"impact": p}} for p in rng.uniform(size=400)]
     (c,) = score.null_calibration(uniform)
