@@ -1376,7 +1376,7 @@ def make_plots(
     cal = null_calibration([r for r in scored if r["effect"] == gen.NULL])
     if cal:
         fig, ax = plt.subplots(figsize=(5.0, 4.5))
-        lo = 1.0 / (1 + max(c["n"] for c in cal))
+        lo = 0.5 / max(c["n"] for c in cal)  # the smallest expected quantile plotted
         ax.plot([lo, 1], [lo, 1], color="0.5", lw=1, label="uniform")
         for c in cal:
             expected = (np.arange(c["n"]) + 0.5) / c["n"]
