@@ -64,7 +64,25 @@ def test_null_record_gives_no_finding_and_truth_is_never_read(
     # rests near its reversals for a part of the record, never most of it
     assert doc["data"]["sigma_x_m"] == pytest.approx(truth["noise_std"], rel=0.25)
     assert 0.0 < doc["data"]["near_rest_fraction"] < 0.5
-    assert (tmp_path / "out" / "report.md").read_text().startswith("# Diagnosis")
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert report.startswith("# Diagnosis") and "Nothing is missing" in report
+    assert "Weak evidence" not in report  # 1 s: far more noise dimensions than parameters
+
+
+@pytest.mark.slow
+def test_a_short_null_record_says_its_evidence_is_weak(
+    paper_config: Config, tmp_path: Path
+) -> None:
+    """The seed's own length (0.272 s): nothing found, and the report says that this proves
+    little, since the base's 26 parameters take most of the whitened dimensions."""
+    rec, truth = paper_twin(duration=0.272, seed=11)
+    path = write_recording(rec, tmp_path / "short.h5", truth=truth)
+    diag, paths = diagnose_recording(
+        path, ROOT / "configs" / "paper.toml", out=tmp_path / "out", overrides=FAST
+    )
+    assert diag.findings == []
+    assert diag.selection.whitener.dof <= 2 * diag.base_spec.n_free
+    assert "Weak evidence on this record" in paths["report"].read_text()
 
 
 @pytest.mark.slow
