@@ -241,7 +241,10 @@ def test_null_calibration_tells_uniform_from_skewed_p_values() -> None:
     not; a friction-law candidate counts as a likelihood ratio on 1 s, a score on 0.272 s."""
     score = _load("score")
     rng = np.random.default_rng(0)
-    uniform = [{"duration": 1.0, "step1_p": {"impact": p}} for p in rng.uniform(size=400)]
+    uniform = [
+        {"duration": 1.0 + i % 2, "step1_p": {"impact": p}}
+        for i, p in enumerate(rng.uniform(size=400))
+    ]
     (c,) = score.null_calibration(uniform)
     assert (c["kind"], c["span"], c["n"]) == ("score", "1-2 s", 400)
     assert abs(c["median"] - 0.5) < 0.06 and abs(c["below_05"] - 0.05) < 0.03

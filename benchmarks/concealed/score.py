@@ -47,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import generate as gen
 import numpy as np
 
+from fricjax.diagnose.catalogue import CATALOGUE
 from fricjax.diagnose.run import NEAR_REST_CAVEAT, NEAR_REST_LAWS
 
 ROOT = gen.ROOT
@@ -600,12 +601,19 @@ def oracle_section(eff_rows: Sequence[dict[str, Any]], levels: Sequence[float]) 
 SHORT_S = 0.5
 
 
+# the candidates whose p-value comes from their refit's likelihood ratio on long records
+BY_REFIT = frozenset(c.effect for c in CATALOGUE if c.by_refit)
+
+
 def _test_kind(effect: str, duration: float) -> str:
     """Which test gave ``effect``'s p-value on a record of ``duration`` s (select module)."""
-    from fricjax.diagnose.catalogue import CATALOGUE
+    return "likelihood ratio" if effect in BY_REFIT and duration > SHORT_S else "score"
 
-    by_refit = {c.effect: c.by_refit for c in CATALOGUE}
-    return "likelihood ratio" if by_refit.get(effect) and duration > SHORT_S else "score"
+
+def _span(durations: set[float]) -> str:
+    """``0.272 s`` or ``1-2 s``: the record lengths of a group."""
+    lo, hi = min(durations), max(durations)
+    return f"{lo:g} s" if lo == hi else f"{lo:g}-{hi:g} s"
 
 
 def null_calibration(null_rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -613,18 +621,20 @@ def null_calibration(null_rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]
     on the null recordings, where each must be uniform on (0, 1)."""
     from scipy import stats
 
-    groups: dict[tuple[str, str], list[float]] = {}
+    groups: dict[tuple[str, bool], list[float]] = {}
+    lengths: dict[bool, set[float]] = {}
     for r in null_rows:
-        span = "0.272 s" if r["duration"] <= SHORT_S else "1-2 s"
+        short = r["duration"] <= SHORT_S
+        lengths.setdefault(short, set()).add(float(r["duration"]))
         for effect, p in (r.get("step1_p") or {}).items():
-            groups.setdefault((_test_kind(effect, r["duration"]), span), []).append(float(p))
+            groups.setdefault((_test_kind(effect, r["duration"]), short), []).append(float(p))
     out = []
-    for (kind, span), ps in sorted(groups.items()):
+    for (kind, short), ps in sorted(groups.items(), key=lambda g: (g[0][0], not g[0][1])):
         v = np.asarray(ps)
         out.append(
             {
                 "kind": kind,
-                "span": span,
+                "span": _span(lengths[short]),
                 "p": np.sort(v),
                 "n": v.size,
                 "median": float(np.median(v)),
