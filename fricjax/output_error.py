@@ -478,9 +478,12 @@ def output_error_residual(
     problem: Problem,
     start: Mapping[str, float],
     settings: OutputErrorSettings | None = None,
+    states: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> OutputErrorSetup:
     """The :class:`OutputError` residual of ``problem``, the augmented start vector and box
-    (θ clipped into the config's box; segment states from the record), and names."""
+    (θ clipped into the config's box; segment states from the record, or ``states`` =
+    (ξ [S], ν [S]) of an earlier fit with the same segmentation, clipped into their box),
+    and names."""
     settings = settings or OutputErrorSettings()
     spec = problem.spec
     t = np.asarray(problem.t, dtype=np.float64)
@@ -497,6 +500,11 @@ def output_error_residual(
     sigma_v = _state_sigma_v(problem.preprocess, dt, x_scale)
     dv = _STATE_SIGMAS * sigma_v + _V_RANGE_FRACTION * float(np.ptp(v))
     xi0, nu0 = x[seg.starts], v[seg.starts]
+    xi_s, nu_s = (xi0, nu0) if states is None else (np.asarray(states[0]), np.asarray(states[1]))
+    if xi_s.shape != xi0.shape or nu_s.shape != nu0.shape:
+        raise FricjaxError(
+            f"output error: {xi_s.shape[0]} segment states given for {seg.S} segments"
+        )
     tt, uu = _segment_grid(t, u, seg)
     residual = OutputError(
         model=problem.model,
@@ -517,9 +525,12 @@ def output_error_residual(
         *(f"x_seg{s}" for s in range(seg.S)),
         *(f"v_seg{s}" for s in range(seg.S)),
     ]
+    # the box of the states stays centred on the record's, so a warm start moves no bound
+    xi_s = np.clip(xi_s, xi0 - dx, xi0 + dx)
+    nu_s = np.clip(nu_s, nu0 - dv, nu0 + dv)
     return OutputErrorSetup(
         residual=residual,
-        x0=np.concatenate([theta0, xi0, nu0]),
+        x0=np.concatenate([theta0, xi_s, nu_s]),
         lower=np.concatenate([spec.lower, xi0 - dx, nu0 - dv]),
         upper=np.concatenate([spec.upper, xi0 + dx, nu0 + dv]),
         names=names,
@@ -581,6 +592,7 @@ def fit_output_error(
     problem: Problem,
     start: Mapping[str, float],
     settings: OutputErrorSettings | None = None,
+    states: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> OutputErrorFit:
     """Minimise E_OE (module docstring) over θ and the segment states by Levenberg–Marquardt
     (:func:`fricjax.refine.refine`, sine box transform) from ``start`` (named values, e.g.
@@ -592,10 +604,13 @@ def fit_output_error(
             starts, u for a measured-input model; the config's trim already applied).
         start: named parameter values.
         settings: :class:`OutputErrorSettings`.
+        states: segment states (ξ [S] m, ν [S] m/s) to start from, e.g. those of an
+            earlier fit of the same record (``states_x``, ``states_v``); default: the
+            record's.
     """
     settings = settings or OutputErrorSettings()
     _check_problem(problem)
-    setup = output_error_residual(problem, start, settings)
+    setup = output_error_residual(problem, start, settings, states)
     fn = _Jitted(setup.residual)
     out = refine(fn, setup.x0, setup.lower, setup.upper, settings.refine_settings())
     x_aug = np.asarray(out.x)

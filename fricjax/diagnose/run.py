@@ -39,6 +39,7 @@ from fricjax.diagnose.select import (
     gls_fit,
     whitened_residual,
 )
+from fricjax.diagnose.simulation_test import LawFit, SimulationTest, simulation_test
 from fricjax.identify import IdentifySettings, identify
 from fricjax.io.atomic import atomic_path, write_text_atomic
 from fricjax.model.simulate import simulate
@@ -75,6 +76,9 @@ class DiagnoseSettings:
     noise: noise model of the whitening (``auto``: displacement noise, plus white force
         noise fitted to the residual when the drive is a recorded input;
         :func:`~fricjax.diagnose.locate.resolve_noise`).
+    simulation_test: where equation error names nothing on a record that sticks often or
+        shows unexplained structure, test the friction-law candidates by output error
+        (:mod:`fricjax.diagnose.simulation_test`).
     """
 
     alpha: float = 0.01
@@ -85,6 +89,7 @@ class DiagnoseSettings:
     seed: int = 0
     n_bins: int = 20
     noise: str = "auto"
+    simulation_test: bool = True
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "config") -> DiagnoseSettings:
@@ -139,6 +144,7 @@ class Diagnosis:
                 "data": {
                     k: self.extra[k] for k in ("sigma_x_m", "near_rest_fraction") if k in self.extra
                 },
+                **{k: self.extra[k] for k in ("simulation_test",) if k in self.extra},
             }
         )
 
@@ -687,6 +693,29 @@ def diagnose(
         for st in sel.steps
         for rf, rep in st.rejected
     ]
+    sim = None
+    if (
+        settings.simulation_test
+        and not chosen_steps
+        and (
+            rest_share >= NEAR_REST_CAVEAT
+            or rejected
+            or _unexplained(loc_before, settings.alpha) is not None
+        )
+    ):
+        # Equation error named nothing where it is blind (long stick phases) or left a
+        # structure unexplained: the friction law is asked of the motion itself.
+        sim = simulation_test(
+            problem,
+            problem.spec.as_dict(sel.base_theta),
+            alpha=settings.alpha,
+            min_delta_bic=settings.min_delta_bic,
+            fraction=settings.heldout,
+        )
+        if sim.chosen is not None:
+            sel = _with_law(problem, sel, sim.chosen)
+            final = (sel.model, sel.spec, sel.theta)
+            findings = [_law_finding(problem, sim, rest_share)]
     final_pb = with_model(problem, sel.model, sel.spec)
     loc_after = locate(
         final_pb,
@@ -706,6 +735,7 @@ def diagnose(
     # unexplained at its place (and then the maps' own leftover would repeat it).
     leftover = _unexplained(loc_after, settings.alpha)
     findings += rejected or ([leftover] if leftover is not None else [])
+    extra_sim = {} if sim is None else {"simulation_test": _simulation_summary(sim)}
     return Diagnosis(
         recording=recording or problem.name,
         base_model=problem.model.name,
@@ -721,8 +751,77 @@ def diagnose(
             "sigma_x_m": sel.sigma,
             "base_identify_ems": run.ems,
             "near_rest_fraction": rest_share,
+            **extra_sim,
         },
     )
+
+
+def _with_law(problem: Problem, sel: Selection, law: LawFit) -> Selection:
+    """``sel`` with base + the friction-law term named by simulation as its final model,
+    refitted in the selection's metric (GLS, whitener of the base fit) from the better of
+    the output-error estimate and the base with the term at its null."""
+    spec_e, model_e = law.problem.spec, law.problem.model
+    named = {**problem.spec.as_dict(sel.base_theta), **law.params}
+    at_null = {**named, **{q.name: q.null for q in spec_e.free if q.name in law.params}}
+    at_null = {k: v for k, v in at_null.items() if np.isfinite(v)}
+    pb = with_model(problem, model_e, spec_e)
+    starts = [spec_e.flatten(law.fit.params), spec_e.flatten({**named, **at_null})]
+    theta, _ = min(
+        (gls_fit(pb, model_e, spec_e, th, sel.whitener) for th in starts), key=lambda f: f[1]
+    )
+    return replace(sel, model=model_e, spec=spec_e, theta=theta)
+
+
+def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dict[str, Any]:
+    """The finding of a friction-law term named by simulation (diagnosis.json)."""
+    law = sim.chosen
+    assert law is not None
+    cand = candidate(law.effect)
+    gain = 1 - law.fit.cost / sim.base.cost
+    runner = sorted((f for f in sim.fits if f is not law), key=lambda f: -f.delta_bic)
+    out: dict[str, Any] = {
+        "effect": law.effect,
+        "explanation": cand.explain(law.params, problem)
+        + (
+            f" Found by simulation: with it the model reproduces the recorded motion with "
+            f"{100 * gain:.0f} % less output error (LR = {law.lr:.1f}); equation error "
+            f"hardly sees it because {100 * near_rest:.0f} % of the samples are at or near "
+            "rest, where how the plant stops and breaks away decides."
+        ),
+        "location": cand.location(law.params, problem),
+        "params": law.params,
+        "delta_bic": law.delta_bic,
+        "p_value": law.p_value,
+        "test": "output error",
+        "output_error": {
+            "cost_base": sim.base.cost,
+            "cost_term": law.fit.cost,
+            "lr": law.lr,
+            "runner_up": runner[0].effect if runner else "",
+            "runner_up_delta_bic": runner[0].delta_bic if runner else float("nan"),
+        },
+        **{k: v for k, v in sim.heldout.items() if k == "heldout_improvement"},
+        "heldout_metric": "output error on the last part of the record",
+        "heldout_confirmed": True,
+    }
+    return out
+
+
+def _simulation_summary(sim: SimulationTest) -> dict[str, Any]:
+    """Every candidate's output-error test, for diagnosis.json and the benchmark."""
+    return {
+        "cost_base": sim.base.cost,
+        "candidates": [
+            {"effect": f.effect, "lr": f.lr, "p_value": f.p_value, "delta_bic": f.delta_bic}
+            for f in sim.fits
+        ],
+        "chosen": sim.chosen.effect if sim.chosen is not None else None,
+        "heldout": sim.heldout,
+        "rejected": [
+            {"effect": f.effect, "heldout_improvement": r["heldout_improvement"]}
+            for f, r in sim.rejected
+        ],
+    }
 
 
 def _finding(problem: Problem, step: Any, near_rest: float = 0.0) -> dict[str, Any]:
