@@ -213,6 +213,23 @@ def test_continuity_defects_vanish_at_the_optimum(open_loop):
     assert fit.position_rms == pytest.approx(1e-5, rel=0.1)
 
 
+def test_a_warm_start_from_the_fitted_states_starts_at_the_optimum(open_loop):
+    """Restarted from a fit's parameters AND segment states, LM starts at that fit's cost
+    (the record's states would restart it off the optimum) and never ends above it; a
+    state vector of the wrong length is refused."""
+    problem, fit = open_loop
+    settings = OutputErrorSettings(segments=3)
+    again = fit_output_error(problem, fit.params, settings, (fit.states_x, fit.states_v))
+    assert again.cost_start == pytest.approx(fit.cost, rel=1e-9)
+    assert again.cost <= fit.cost * (1 + 1e-9)
+    cold = output_error_residual(problem, fit.params, settings)
+    warm = output_error_residual(problem, fit.params, settings, (fit.states_x, fit.states_v))
+    assert not np.allclose(cold.x0, warm.x0)  # the fitted states are not the record's
+    np.testing.assert_array_equal(cold.lower, warm.lower)  # and the box stays the record's
+    with pytest.raises(FricjaxError, match="2 segment states given for 3 segments"):
+        output_error_residual(problem, fit.params, settings, (fit.states_x[:2], fit.states_v[:2]))
+
+
 def test_output_error_recovers_the_open_loop_truth(open_loop):
     problem, fit = open_loop
     for k in ("offset", "Fc", "Fv", "mass"):

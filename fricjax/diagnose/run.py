@@ -731,6 +731,12 @@ def diagnose(
         "whiteness_p": loc_after.ljung_box_p,
         "simulation_rms_m": simulation_error(problem, *final),
     }
+    if sim is not None and sim.chosen is not None:
+        # what the named term was judged by: the output error of the 0.05 s segments
+        # [σ_x², whole record]; the single simulation over the whole record above drifts
+        # with any force error and is no measure of it
+        fit["before"]["output_error_cost"] = sim.base.cost
+        fit["after"]["output_error_cost"] = sim.chosen.fit.cost
     # A rejected candidate's structure is still significant on the record: reported as
     # unexplained at its place (and then the maps' own leftover would repeat it).
     leftover = _unexplained(loc_after, settings.alpha)
