@@ -735,7 +735,7 @@ def diagnose(
         # what the named term was judged by: the output error of the 0.05 s segments
         # [σ_x², whole record]; the single simulation over the whole record above drifts
         # with any force error and is no measure of it
-        fit["before"]["output_error_cost"] = sim.base.cost
+        fit["before"]["output_error_cost"] = sim.chosen.cost_base
         fit["after"]["output_error_cost"] = sim.chosen.fit.cost
     # A rejected candidate's structure is still significant on the record: reported as
     # unexplained at its place (and then the maps' own leftover would repeat it).
@@ -783,7 +783,7 @@ def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dic
     law = sim.chosen
     assert law is not None
     cand = candidate(law.effect)
-    gain = 1 - law.fit.cost / sim.base.cost
+    gain = 1 - law.fit.cost / law.cost_base
     runner = sorted((f for f in sim.fits if f is not law), key=lambda f: -f.delta_bic)
     out: dict[str, Any] = {
         "effect": law.effect,
@@ -800,7 +800,7 @@ def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dic
         "p_value": law.p_value,
         "test": "output error",
         "output_error": {
-            "cost_base": sim.base.cost,
+            "cost_base": law.cost_base,
             "cost_term": law.fit.cost,
             "lr": law.lr,
             "runner_up": runner[0].effect if runner else "",

@@ -69,6 +69,7 @@ class LawFit:
     delta_bic: float
     k: int  # the term's free parameters
     params: dict[str, float]  # the term's own parameters (SI units)
+    cost_base: float  # E_base the ratio is taken against [σ_x²]: the lower of the two base fits
 
 
 @dataclass
@@ -115,6 +116,7 @@ def law_fit(
         delta_bic=float(n * np.log(e_base / e_term) - k * np.log(n)),
         k=k,
         params={q: float(v) for q, v in fit.params.items() if q not in problem.spec},
+        cost_base=float(e_base),
     )
 
 
