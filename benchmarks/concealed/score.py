@@ -151,6 +151,7 @@ def run_order(specs: Sequence[gen.CaseSpec]) -> list[gen.CaseSpec]:
 def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
     keys = (
         "effect",
+        "test",
         "params",
         "location",
         "delta_bic",
@@ -241,6 +242,8 @@ def diagnose_rows(
                 else [],
                 "sigma_x_m": diag.extra.get("sigma_x_m"),
                 "near_rest_fraction": diag.extra.get("near_rest_fraction"),
+                # the output-error stage, where it ran (None: equation error decided)
+                "simulation_test": js.get("simulation_test"),
             }
         except Exception as err:  # one broken case must not lose the others
             result = {
@@ -1470,6 +1473,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             if path.is_file():
                 results[row["case"]] = json.loads(path.read_text())
     else:
+        # with --resume, the diagnoses already in the folder are reused: say how many
+        reused = (
+            sum((data / "diagnosis" / f"{row['case']}.json").is_file() for row in rows)
+            if args.resume
+            else 0
+        )
         results = run_all(
             rows,
             data,
@@ -1538,7 +1547,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         "jobs": str(args.jobs),
         "generation wall time": f"{t_gen:.0f} s",
         "diagnosis wall time": f"{t_diag:.0f} s"
-        + (" (resumed)" if args.resume else "")
+        + (
+            f" (resumed: {reused} of {len(rows)} diagnoses reused from the results folder)"
+            if args.resume and not args.report_only
+            else ""
+        )
         + (" (report only)" if args.report_only else ""),
         ("git commit (at report time)" if args.report_only else "git commit"): commit,
         (

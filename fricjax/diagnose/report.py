@@ -157,6 +157,12 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
         "```",
         "",
     ]
+    if diag.extra.get("locate_after_skipped"):
+        lines += [
+            "Residual maps and whiteness after the findings: not computed "
+            f"({diag.extra['locate_after_skipped']}).",
+            "",
+        ]
     if diag.heldout:
         h = diag.heldout
         lines += [

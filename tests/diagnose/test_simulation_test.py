@@ -13,7 +13,14 @@ import fricjax.diagnose.catalogue as cat
 from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.run import _law_finding
-from fricjax.diagnose.simulation_test import LAWS, simulation_test
+from fricjax.diagnose.simulation_test import (
+    LAWS,
+    SCREEN_P,
+    heldout_cut,
+    output_error_score,
+    simulation_test,
+)
+from fricjax.output_error import OutputErrorSettings, fit_output_error, noise_scale
 from fricjax.problem import build_problem
 
 # [N], [m/s]. The base's own Stribeck curve (Fs − Fc, vs) absorbs a drop of a few hundred
@@ -32,8 +39,8 @@ def outcomes(paper_config: Config) -> dict[str, Any]:
     drop = problem(PAPER_MODEL.with_terms([cat.GaussianStribeck()]), {**PAPER_TRUTH, **DROP})
     # the base's own values as the start (the diagnosis starts from its equation-error fit)
     return {
-        "null": simulation_test(null, dict(PAPER_TRUTH), laws=TESTED),
-        "drop": simulation_test(drop, dict(PAPER_TRUTH), laws=TESTED),
+        "null": simulation_test(null, dict(PAPER_TRUTH), effects=TESTED),
+        "drop": simulation_test(drop, dict(PAPER_TRUTH), effects=TESTED),
         "drop_problem": drop,
     }
 
@@ -70,3 +77,63 @@ def test_a_stribeck_drop_is_named_by_simulation_and_pays_on_held_out_data(
     assert lo <= DROP["stribeck_vst"] <= hi
     assert finding["heldout_improvement"] == sim.heldout["heldout_improvement"]
     assert np.isfinite(finding["delta_bic"]) and finding["p_value"] == by["stribeck"].p_value
+
+
+def test_the_held_out_part_is_one_that_reaches_where_the_term_acts(twin_problem: Any) -> None:
+    pb, n = twin_problem, twin_problem.n
+    x, t = np.asarray(pb.x), np.asarray(pb.t)
+    n_test = round(n * 0.3)
+    # a term acting everywhere, or where the last part goes: judged on the last part
+    assert heldout_cut(pb, {"velocity_mps": [0.0, 0.1]}, 0.3)[0] == "last"
+    late = float(t[-5])
+    part, train, test = heldout_cut(pb, {"time_s": [late - 1e-3, late + 1e-3]}, 0.3)
+    assert part == "last" and (train.stop, test.start, test.stop) == (n - n_test,) * 2 + (n,)
+    # an impact early in the record: judged on the first part, trained on the rest
+    early = float(t[10])
+    part, train, test = heldout_cut(pb, {"time_s": [early - 1e-3, early + 1e-3]}, 0.3)
+    assert part == "first" and (test.start, test.stop, train.start, train.stop) == (
+        0,
+        n_test,
+        n_test,
+        n,
+    )
+    # one in the middle, which neither part reaches: not judged, and the reason names both
+    mid = float(t[n // 2])
+    why = heldout_cut(pb, {"time_s": [mid - 1e-3, mid + 1e-3]}, 0.3)
+    assert isinstance(why, str) and why.count("never reaches") == 2
+    # a bump at a position only the middle of the motion passes (x is monotone here)
+    if np.all(np.diff(x[: n // 2 + 5]) > 0):
+        xm = float(x[n // 2])
+        assert isinstance(heldout_cut(pb, {"position_m": [xm - 1e-6, xm + 1e-6]}, 0.3), str)
+
+
+IMPACT = {"impact_A": 4000.0, "impact_t0": 0.12, "impact_w": 0.003}  # [N], [s], [s]
+
+
+@pytest.fixture(scope="module")
+def scored(paper_config: Config) -> dict[str, Any]:
+    settings = OutputErrorSettings(segment_s=0.05)
+    out = {}
+    for name, model, truth in (
+        ("null", PAPER_MODEL, PAPER_TRUTH),
+        ("impact", PAPER_MODEL.with_terms([cat.Impact()]), {**PAPER_TRUTH, **IMPACT}),
+    ):
+        rec, _ = paper_twin(duration=0.272, seed=3, model=model, truth=truth)
+        pb = build_problem(rec, paper_config)
+        s = settings._replace(x_scale=noise_scale(np.asarray(pb.x)))
+        base = fit_output_error(pb, dict(PAPER_TRUTH), s)
+        out[name] = output_error_score(pb, base, "impact", s)
+    return out
+
+
+@pytest.mark.slow  # ~1 min: two base fits and the impact's Jacobian compiled
+def test_the_output_error_score_finds_a_hidden_impact_and_where_it_acts(
+    scored: dict[str, Any],
+) -> None:
+    hit, null = scored["impact"], scored["null"]
+    assert hit.k == 1 and hit.grid_size > 1
+    assert hit.p_value < 1e-6 < SCREEN_P
+    # the grid's best instant lies within two widths of the impact's
+    assert abs(hit.start["impact_t0"] - IMPACT["impact_t0"]) < 2 * IMPACT["impact_w"]
+    # on the same plant without it the score is not significant and the candidate screened
+    assert null.p_value > SCREEN_P
