@@ -15,12 +15,16 @@ from fricjax.diagnose.locate import LocateReport, MapBin, default_whitener
 from fricjax.diagnose.run import (
     NEAR_REST_CAVEAT,
     NEAR_REST_LAWS,
+    SIMULATION_TERMS,
+    DiagnoseSettings,
     _finding,
     _unexplained,
     heldout_parts,
     untested_place,
     with_rest,
 )
+from fricjax.diagnose.simulation_test import LAWS, TERMS
+from fricjax.errors import FricjaxError
 from fricjax.model.simulate import simulate
 from fricjax.params import ParamSpec
 from fricjax.problem import Problem
@@ -186,3 +190,15 @@ def test_a_held_out_split_keeps_each_part_s_rest_samples(
     # and the samples marked at rest are exactly the ones the whitener leaves out
     np.testing.assert_array_equal(default_whitener(test, theta).excluded, test.rest)
     assert replace(marked, rest=None).cost_fn is not None  # the grid cost path stays open
+
+
+def test_the_simulation_terms_setting_picks_the_candidates_and_refuses_others() -> None:
+    assert DiagnoseSettings().simulation_terms == "laws"
+    assert SIMULATION_TERMS["laws"] == LAWS and set(LAWS) < set(SIMULATION_TERMS["all"])
+    assert SIMULATION_TERMS["all"] == TERMS and "presliding_hysteresis" not in TERMS
+    assert DiagnoseSettings.from_dict({"simulation_terms": "all"}).simulation_terms == "all"
+    with pytest.raises(FricjaxError) as err:
+        DiagnoseSettings.from_dict({"simulation_terms": "every"}, source="c.toml")
+    msg = str(err.value)
+    assert "c.toml" in msg and "simulation_terms" in msg and "'every'" in msg
+    assert "\n" not in msg
