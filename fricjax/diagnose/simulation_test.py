@@ -51,7 +51,8 @@ significant. That was built to stop the laws soaking up what the base cannot fol
 the concealed benchmark at e683942 a bump, a drift and a presliding lag on 0.272 s
 records and one 2 s null were named ``stribeck``), and it is not the default because it
 did not. Measured on 10 such benchmark records (eight 0.272 s, one 1 s, one 2 s; that
-variant started the laws too at their score maximum): two wrong or false names became
+variant also started later candidates from a base refitted for earlier ones, and on nine
+of the records the laws at their score maximum): two wrong or false names became
 none, four wrong names stayed (a drift, a presliding lag, two asymmetries), two records
 without a finding (periodic forces, 0.272 s) got wrong names (``stribeck``,
 ``friction_drift``), one correct name and one miss stayed; a 0.272 s record took up to
