@@ -637,6 +637,10 @@ def jacobian(problem: Problem, theta: Float[np.ndarray, " d"]) -> Float[np.ndarr
     return np.asarray(compiled_jacfwd(problem.residual_fn, theta))
 
 
+class TooShortToLocate(FricjaxError):
+    """The fitted directions leave the residual maps fewer than 2 degrees of freedom."""
+
+
 def locate_plan(
     problem: Problem,
     theta: Float[np.ndarray, " d"],
@@ -663,7 +667,7 @@ def locate_plan(
     Q = orthonormal_basis(np.concatenate([J_w, wh.N], axis=1))
     dof = wh.M - Q.shape[1]
     if dof < 2:
-        raise FricjaxError(
+        raise TooShortToLocate(
             f"{where(src, 'params')}: {Q.shape[1]} fitted directions leave {dof} of the "
             f"{wh.M} whitened degrees of freedom; the record is too short to locate"
         )

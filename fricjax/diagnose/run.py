@@ -26,6 +26,7 @@ from fricjax.diagnose.catalogue import candidate
 from fricjax.diagnose.locate import (
     NOISE_MODELS,
     LocateReport,
+    TooShortToLocate,
     default_whitener,
     locate,
     near_rest,
@@ -46,7 +47,6 @@ from fricjax.diagnose.simulation_test import (
     SimulationTest,
     simulation_test,
 )
-from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings, identify
 from fricjax.io.atomic import atomic_path, write_text_atomic
 from fricjax.model.simulate import simulate
@@ -211,7 +211,7 @@ def simulation_error(problem: Problem, model: Model, spec: ParamSpec, theta: np.
     return float(np.sqrt(np.mean(err**2)))
 
 
-def _split(problem: Problem, start: int, stop: int) -> Problem:
+def record_part(problem: Problem, start: int, stop: int) -> Problem:
     """Samples ``start … stop − 1`` of the preprocessed record, remembering where they lie in
     it (:attr:`Problem.window`): their noise continues across a cut end, and the whitener of
     the part treats a cut end as such, not as a record end."""
@@ -233,7 +233,7 @@ def heldout_parts(problem: Problem, fraction: float) -> tuple[Problem, Problem]:
     """(training, test) parts of the record's contiguous split: the first ``1 − fraction``
     of the samples and the rest."""
     k = round(problem.n * (1 - fraction))
-    return _split(problem, 0, k), _split(problem, k, problem.n)
+    return record_part(problem, 0, k), record_part(problem, k, problem.n)
 
 
 def untested_place(location: dict[str, Any], test: Problem) -> str:
@@ -737,7 +737,7 @@ def diagnose(
     loc_after: LocateReport | None
     try:
         loc_after = locate(final_pb, sel.theta, **maps, n_mc=settings.n_mc, seed=settings.seed + 1)
-    except FricjaxError as err:
+    except TooShortToLocate as err:
         # A short record whose base fit leaves few degrees of freedom may have none left
         # for the maps once the named term is in (0.272 s, base + a Stribeck drop named
         # by simulation: 47 fitted directions of 48). The finding stands on its own tests;

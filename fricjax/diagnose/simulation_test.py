@@ -66,12 +66,16 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float, Int
 from scipy import stats
 
 from fricjax.diagnose.catalogue import candidate
 from fricjax.output_error import (
+    OutputError,
     OutputErrorFit,
     OutputErrorSettings,
     fit_output_error,
@@ -124,6 +128,25 @@ class OutputErrorScore:
     start: dict[str, float]  # the term's shape parameters at the maximum
 
 
+@eqx.filter_jit
+def _term_columns(
+    residual: OutputError,
+    x0: Float[Array, " D"],
+    nl: Int[Array, " q"],
+    lin: Int[Array, " k"],
+    points: Float[Array, "G q"],
+) -> Float[Array, "G m k"]:
+    """∂r_aug/∂β [m, k] at θ_aug = ``x0`` with the shape parameters (slots ``nl``) set to
+    each grid point: forward tangents along the β slots ``lin``, vmapped over the grid."""
+    tangents = jnp.eye(x0.shape[0], dtype=x0.dtype)[lin]  # [k, D]
+
+    def at(point: Array) -> Array:
+        x = x0.at[nl].set(point)
+        return jax.vmap(lambda t: jax.jvp(residual.value, (x,), (t,))[1], out_axes=1)(tangents)
+
+    return jax.vmap(at)(points)
+
+
 def output_error_score(
     problem: Problem, base: OutputErrorFit, effect: str, settings: OutputErrorSettings
 ) -> OutputErrorScore:
@@ -139,7 +162,8 @@ def output_error_score(
 
     (χ²_k under the null for a fixed g, the linearised LR). The grid maximum starts the
     candidate's fit; its Bonferroni p screens the candidate (:data:`SCREEN_P`). Costs one
-    Jacobian per grid point and the compilation the candidate's fit reuses.
+    Jacobian (the compilation the candidate's fit reuses) and k forward tangents per grid
+    point, all grid points in one vectorised call (:func:`_term_columns`).
     """
     cand = candidate(effect)
     ext = cand.extend_problem(problem)
@@ -149,23 +173,41 @@ def output_error_score(
     grid = cand.grid(problem)
     nl = [names.index(n) for n in grid]
     G = len(next(iter(grid.values()))) if grid else 1
+    points = (
+        np.stack(
+            [
+                np.clip(grid[n], setup.lower[i], setup.upper[i])
+                for n, i in zip(grid, nl, strict=True)
+            ],
+            axis=1,
+        )
+        if grid
+        else np.zeros((1, 0))
+    )
     others = [i for i in range(len(names)) if i not in lin and i not in nl]
     nu = max(base.n_residual - problem.spec.n_free - 2 * base.n_segments, 1)
     sigma2 = base.cost / nu
-    x = np.array(setup.x0, dtype=np.float64)
-    stats_g = np.zeros(G)
-    basis = None
-    for g in range(G):
-        for name, i in zip(grid, nl, strict=True):
-            x[i] = np.clip(grid[name][g], setup.lower[i], setup.upper[i])
-        r, jac = (np.asarray(a) for a in jacobian_at(setup.residual, jnp.asarray(x)))
-        if basis is None:
-            # the base's and the states' columns do not depend on the term's shape at β = 0
-            u, sv, _ = np.linalg.svd(jac[:, others], full_matrices=False)
-            basis = u[:, sv > sv[0] * 1e-10]
-        c = jac[:, lin] - basis @ (basis.T @ jac[:, lin])
-        coef, *_ = np.linalg.lstsq(c, r, rcond=None)
-        stats_g[g] = float(r @ (c @ coef)) / sigma2
+    # r and the base's and states' columns do not depend on the term's shape at β = 0:
+    # one Jacobian (the compilation the candidate's fit reuses), then the β columns of
+    # every grid point at once
+    r, jac = (np.asarray(a) for a in jacobian_at(setup.residual, jnp.asarray(setup.x0)))
+    u, sv, _ = np.linalg.svd(jac[:, others], full_matrices=False)
+    basis = u[:, sv > sv[0] * 1e-10]
+    cols = np.asarray(
+        _term_columns(
+            setup.residual,
+            jnp.asarray(setup.x0),
+            jnp.asarray(nl, dtype=int),
+            jnp.asarray(lin, dtype=int),
+            jnp.asarray(points),
+        )
+    )  # [G, m, k]
+    cols = cols - np.einsum("mb,gbk->gmk", basis, np.einsum("mb,gmk->gbk", basis, cols))
+    b_g = np.einsum("gmk,m->gk", cols, r)
+    stats_g = (
+        np.einsum("gk,gkl,gl->g", b_g, np.linalg.pinv(np.einsum("gmk,gml->gkl", cols, cols)), b_g)
+        / sigma2
+    )
     best = int(np.argmax(stats_g))
     k = len(lin)
     return OutputErrorScore(
@@ -192,7 +234,6 @@ class LawFit:
     params: dict[str, float]  # the term's own parameters (SI units)
     cost_base: float  # E_base the ratio is taken against [σ_x²]: the lower of the two base fits
     rebased: bool = True  # False: judged against the base's first fit only (law_fit's bars)
-    score: OutputErrorScore | None = None  # its score test, which chose the start
 
 
 @dataclass
@@ -289,7 +330,7 @@ def heldout_cut(
     part never goes (a bump, an impact: there its "gain" would be the base's extrapolation
     alone); the training part is the rest. Where neither test part reaches the place, the
     reasons (a string) instead."""
-    from fricjax.diagnose.run import _split, untested_place
+    from fricjax.diagnose.run import record_part, untested_place
 
     n_test = round(problem.n * fraction)
     cuts = {
@@ -298,7 +339,7 @@ def heldout_cut(
     }
     whole = replace(problem, rest=None)
     why = {
-        part: untested_place(dict(place), _split(whole, test.start, test.stop))
+        part: untested_place(dict(place), record_part(whole, test.start, test.stop))
         for part, (_, test) in cuts.items()
     }
     part = next((q for q in cuts if not why[q]), None)
@@ -318,7 +359,7 @@ def heldout_gain(
     :func:`heldout_cut`: ``heldout_improvement`` = ``1 − E_term,test / E_base,test``.
     Where no part can judge the term, ``heldout_untestable`` says why and the gain is NaN:
     the term is not named on this record."""
-    from fricjax.diagnose.run import _split
+    from fricjax.diagnose.run import record_part
 
     cut = heldout_cut(problem, candidate(law.effect).location(law.params, problem), fraction)
     if isinstance(cut, str):
@@ -329,8 +370,8 @@ def heldout_gain(
     costs = []
     for pb, fit in ((problem, base), (law.problem, law.fit)):
         pb = replace(pb, rest=None)
-        train = _split(pb, train_sl.start, train_sl.stop)
-        test = _split(pb, test_sl.start, test_sl.stop)
+        train = record_part(pb, train_sl.start, train_sl.stop)
+        test = record_part(pb, test_sl.start, test_sl.stop)
         costs.append(_held_test_cost(train, test, dict(fit.params), settings))
     return {
         "heldout_improvement": float(1 - costs[1] / costs[0]),
@@ -370,9 +411,7 @@ def simulation_test(
             if score.p_value >= SCREEN_P:
                 continue
         nonlinear = score.start if score is not None else None
-        law = law_fit(problem, base, effect, settings, nonlinear, (limit, min_delta_bic))
-        law.score = score
-        fits.append(law)
+        fits.append(law_fit(problem, base, effect, settings, nonlinear, (limit, min_delta_bic)))
     passing = sorted(
         (f for f in fits if f.p_value < limit and f.delta_bic > min_delta_bic),
         key=lambda f: -f.delta_bic,
