@@ -18,9 +18,9 @@ from fricjax.diagnose.run import (
     Confirm,
     CrossValidation,
     _rejected,
-    _split,
     heldout_check,
     heldout_judged,
+    record_part,
 )
 from fricjax.diagnose.select import forward_select, whitened_residual
 from fricjax.problem import Problem, build_problem
@@ -76,7 +76,7 @@ def test_the_held_out_part_is_whitened_as_rows_of_the_whole_record(cases: dict) 
     # parameters fitted on 0.7 s extrapolate, which the check's ratio compares, not hides.
     problem, h = cases[False]
     k = round(problem.n * 0.7)
-    test = _split(problem, k, problem.n)
+    test = record_part(problem, k, problem.n)
     assert test.window == (k, problem.n)
     theta = problem.theta(PAPER_TRUTH)
     # (its own whitener: the reversal directions projected out depend on theta)
