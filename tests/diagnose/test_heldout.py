@@ -17,7 +17,9 @@ from fricjax.diagnose.run import (
     CV_KEY,
     Confirm,
     CrossValidation,
+    HeldOut,
     _rejected,
+    frozen,
     heldout_check,
     heldout_judged,
     record_part,
@@ -237,3 +239,83 @@ def test_the_report_says_which_check_judged_a_local_finding() -> None:
     refused = _heldout_verdict(local | {CV_KEY: -0.05, "heldout_confirmed": False})
     assert "-5.0 %" in refused and "NOT confirmed" in refused
     assert "cross-validation" not in _heldout_verdict(_named(0.1) | {"heldout_confirmed": True})
+
+
+# -- short records: the training part cannot determine the model ----------------------------
+
+SHORT_HARMONIC = {"harm_A": 300.0, "harm_B": 0.0, "harm_f": 37.0}
+
+
+@pytest.fixture(scope="module")
+def short_problems(paper_config: Config) -> dict[bool, Problem]:
+    """0.272 s twins with and without a 300 N harmonic at 37 Hz."""
+    out = {}
+    for hidden in (True, False):
+        truth = {**PAPER_TRUTH, **SHORT_HARMONIC} if hidden else dict(PAPER_TRUTH)
+        model = PAPER_MODEL.with_terms([cat.ExtraHarmonic()]) if hidden else PAPER_MODEL
+        rec, _ = paper_twin(duration=0.272, seed=5, model=model, truth=truth)
+        out[hidden] = build_problem(rec, paper_config)
+    return out
+
+
+@pytest.fixture(scope="module")
+def short_checks(short_problems: dict) -> dict[bool, tuple[HeldOut, float, tuple, tuple]]:
+    """The check of base + the harmonic (started at its true values) against the base at
+    the true parameters, on each short twin."""
+    out = {}
+    for hidden, problem in short_problems.items():
+        ext = cat.candidate("extra_harmonic").extend_problem(problem, {"harm_f": 37.0})
+        named = {**PAPER_TRUTH, **SHORT_HARMONIC}
+        base = (problem.model, problem.spec, problem.theta(PAPER_TRUTH))
+        after = (ext.model, ext.spec, ext.spec.flatten({k: named[k] for k in ext.spec.free_names}))
+        judge = HeldOut(problem, base, 0.3)
+        out[hidden] = (judge, judge.gain(base, after, {}, own=list(SHORT_HARMONIC))[0], base, after)
+    return out
+
+
+def test_a_short_record_s_check_fits_only_the_finding_s_parameters(short_checks: dict) -> None:
+    # ~21 whitened dimensions in the first 70 % of 0.272 s, 29 parameters: not determined,
+    # so the base stays at its whole-record values and only the harmonic's 3 are fitted
+    judge, _, base, after = short_checks[True]
+    assert not judge.determined(after[1]) and judge.wh.dof < after[1].n_free
+    _, spec_f, start = frozen(base, after, list(SHORT_HARMONIC))
+    assert spec_f.free_names == tuple(SHORT_HARMONIC)
+    held = base[1].as_dict(base[2])
+    fixed = spec_f.as_dict(start)
+    assert all(fixed[n] == pytest.approx(held[n]) for n in base[1].free_names)
+
+
+def test_a_short_record_s_check_pays_for_a_hidden_harmonic_and_not_for_noise(
+    short_checks: dict,
+) -> None:
+    # the harmonic fitted on the first 70 % predicts the last 30 % where it is there
+    # and costs where the record lacks it (its amplitude fitted to noise)
+    assert short_checks[True][1] > 0.5
+    assert short_checks[False][1] < 0.02
+
+
+def test_the_next_eligible_candidates_are_refitted_when_the_first_are_refused(
+    short_problems: dict,
+) -> None:
+    # The short record's 300 N harmonic makes four candidates significant. With one refit
+    # slot and a check that refuses every candidate, forward selection refits each of them
+    # in turn (measured ΔBIC: harmonic 514, periodic 458, impact 397, bump 375); it asks
+    # only the harmonic, as the others re-explain the structure it refused with less gain.
+    problem = short_problems[True]
+    asked: list[str] = []
+
+    def refuse(current: tuple, refit: object) -> tuple[bool, dict]:
+        asked.append(refit.effect)
+        return False, {"heldout_improvement": -0.4}
+
+    effects = ("extra_harmonic", "impact", "position_periodic", "position_bump", "friction_drift")
+    pool = [cat.candidate(e) for e in effects]
+    sel = forward_select(
+        problem, problem.theta(PAPER_TRUTH), candidates=pool, n_mc=400, n_refit=1, confirm=refuse
+    )
+    (step,) = sel.steps
+    eligible = [sc.effect for sc in step.scores if sc.p_value < 0.01 / len(pool)]
+    assert len(eligible) == 4 and "friction_drift" not in eligible
+    assert sorted(rf.effect for rf in step.refits) == sorted(eligible)
+    assert max(step.refits, key=lambda rf: rf.delta_bic).effect == "extra_harmonic"
+    assert asked == ["extra_harmonic"] and step.chosen is None

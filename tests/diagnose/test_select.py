@@ -231,3 +231,25 @@ def test_refit_starts_are_distinct_grid_maxima_led_by_the_best() -> None:
                     )
                     > 1.5
                 )
+
+
+def test_with_sigma_known_the_bic_of_a_null_term_stays_below_the_bar() -> None:
+    # A short record's test space: 30 whitened dimensions, 26 base parameters, a term of 3
+    # that is not there (linear model, unit noise). The profile BIC divides by what the one
+    # dimension left happens to hold and its ΔBIC exceeds the bar of 10 on most draws; with
+    # σ known (the third difference's σ̂ on such records) ΔBIC = χ²_3 − 3·ln 30 never does.
+    from fricjax.diagnose.select import bic, bic_known
+
+    rng = np.random.default_rng(0)
+    m, kb, ke = 30, 26, 3
+    x = rng.normal(size=(m, kb + ke))
+    profile, known = [], []
+    for _ in range(500):
+        y = rng.normal(size=m)
+        rb = y - x[:, :kb] @ np.linalg.lstsq(x[:, :kb], y, rcond=None)[0]
+        rt = y - x @ np.linalg.lstsq(x, y, rcond=None)[0]
+        profile.append(bic(rb @ rb, m, kb) - bic(rt @ rt, m, kb + ke))
+        known.append(bic_known(rb @ rb, m, kb, 1.0) - bic_known(rt @ rt, m, kb + ke, 1.0))
+        assert known[-1] == pytest.approx(rb @ rb - rt @ rt - ke * np.log(m))
+    assert np.mean(np.array(profile) > 10) > 0.5
+    assert np.mean(np.array(known) > 10) < 0.01
