@@ -162,6 +162,7 @@ def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
         "heldout_split_untestable",
         "heldout_cv_improvement",
         "heldout_confirmed",
+        "heldout_frozen",
         "near_rest_caveat",
         "rejected_candidate",
     )

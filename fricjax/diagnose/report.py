@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
-from fricjax.diagnose.run import CV_FOLDS
+from fricjax.diagnose.run import CV_FOLDS, FROZEN_KEY
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt, format_table
 
@@ -132,16 +132,20 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
         lines += ["## Findings", ""]
         for i, f in enumerate(diag.findings, 1):
             params = ", ".join(f"{k} = {fmt(v, 4)}" for k, v in f["params"].items())
+            note = []
             if "rejected_candidate" in f:
                 rej = f["rejected_candidate"]
                 fitted = ", ".join(f"{k} = {fmt(v, 4)}" for k, v in rej["params"].items())
                 params = f"as {rej['effect']} (not claimed): {fitted}"
+                if rej.get(FROZEN_KEY):
+                    note = [f"   - held-out check: {FROZEN_NOTE}"]
             lines += [
                 f"{i}. **{f['effect']}** — {f['explanation']}",
                 f"   - where: {f['location']}",
                 f"   - size: {params}",
                 f"   - how sure: p = {f['p_value']:.2g} (calibrated), "
                 f"ΔBIC = {fmt(f['delta_bic'], 4)}",
+                *note,
                 "",
             ]
     fb, fa = diag.fit["before"], diag.fit["after"]
@@ -171,6 +175,7 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
             f"({100 * h['rss_w_improvement']:+.1f} %); EMS {fmt(h['ems_before'], 6)} → "
             f"{fmt(h['ems_after'], 6)} N² ({100 * h['ems_improvement']:+.1f} %). "
             f"Decided by the {h['metric']} (the metric in which the noise model is white).",
+            *([FROZEN_NOTE] if h.get("mode") == "frozen" else []),
             "",
         ]
         if "split" in h:
@@ -197,7 +202,27 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
     return "\n".join(lines) + "\n"
 
 
+# what a check that could fit only the finding's own parameters means (short records)
+FROZEN_NOTE = (
+    "The part the fit may use holds fewer whitened dimensions than the model has "
+    "parameters, so only the finding's own parameters were fitted there, the others kept "
+    "at the whole-record fit, which has seen the test part: the check leans towards the "
+    "model without the finding. A longer recording, or a second one (--validation), "
+    "judges it fully."
+)
+
+
 def _heldout_verdict(finding: dict) -> str:
+    if finding.get(FROZEN_KEY):
+        return (
+            _heldout_text(finding)
+            + " (only its own parameters fitted: "
+            + ("the record is too short to refit the base on part of it)")
+        )
+    return _heldout_text(finding)
+
+
+def _heldout_text(finding: dict) -> str:
     gain = f"{100 * finding['heldout_improvement']:+.1f} %"
     if "heldout_split_improvement" in finding:
         split = f"{100 * finding['heldout_split_improvement']:+.1f} %"

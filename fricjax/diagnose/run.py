@@ -37,6 +37,7 @@ from fricjax.diagnose.select import (
     Selection,
     WhitenedResidual,
     bic,
+    bic_known,
     forward_select,
     gls_fit,
     whitened_residual,
@@ -346,15 +347,33 @@ class HeldOut:
         r_w = np.asarray(fn(jnp.asarray(theta)))
         return float(r_w @ r_w), with_model(self.test, model, spec).ems(theta)
 
+    def frozen_scores(
+        self,
+        before: tuple[Model, ParamSpec, np.ndarray],
+        after: tuple[Model, ParamSpec, np.ndarray],
+        own: Sequence[str],
+    ) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(whitened RSS [m²], EMS [N²]) on the test part of ``before`` at its whole-record
+        fit, as it is, and of ``after`` whose ``own`` parameters (the finding's) alone are
+        fitted on the training part, every other one frozen at ``before``'s values."""
+        b_model, b_spec, b_theta = before
+        a_model, spec_f, start = frozen(before, after, own)
+        fit_theta, _ = gls_fit(
+            with_model(self.train, a_model, spec_f), a_model, spec_f, start, self.wh
+        )
+        return self._test_score(b_model, b_spec, b_theta), self._test_score(
+            a_model, spec_f, fit_theta
+        )
+
     def frozen_gain(
         self,
         before: tuple[Model, ParamSpec, np.ndarray],
         after: tuple[Model, ParamSpec, np.ndarray],
         own: Sequence[str],
     ) -> float:
-        """Relative improvement on the test part of ``after`` whose ``own`` parameters (the
-        finding's) alone are fitted on the training part, every other one frozen at
-        ``before``'s whole-record fit; ``before`` is scored at that fit, as it is.
+        """Relative improvement on the test part of ``after`` over ``before`` by
+        :meth:`frozen_scores`: only the finding's ``own`` parameters learn from the
+        training part.
 
         The check of a record whose training part cannot determine the model
         (:meth:`determined` false: a 0.272 s record keeps ~30 whitened dimensions, its
@@ -363,15 +382,7 @@ class HeldOut:
         (9.88 mm against 9.91) and amplitude lost 1202 % on the last 30 %. Here the base
         has seen the test part and the term has not, so the check leans towards the base:
         a gain means the term predicts what the base, fitted to those samples, left."""
-        b_model, b_spec, b_theta = before
-        a_model, spec_f, start = frozen(before, after, own)
-        fit_theta, _ = gls_fit(
-            with_model(self.train, a_model, spec_f), a_model, spec_f, start, self.wh
-        )
-        a, b = (
-            self._test_score(b_model, b_spec, b_theta),
-            self._test_score(a_model, spec_f, fit_theta),
-        )
+        a, b = self.frozen_scores(before, after, own)
         k = 1 if self.by_ems else 0
         return 1 - b[k] / a[k]
 
@@ -402,29 +413,26 @@ class HeldOut:
         """The check of ``chain`` (base, then each model of forward selection): first
         against last, and each step against the one before it. ``owns``: each step's own
         parameters; where given and the training part does not determine the last model,
-        the steps are judged by :meth:`frozen_gain` (and first against last with every
-        step's parameters fitted)."""
-        if owns and not self.determined(chain[-1][1]):
-            steps = [
-                self.frozen_gain(a, b, own)
+        the steps are judged by :meth:`frozen_scores` (each against the model before it as
+        it is; first against last with every step's own parameters fitted, ``mode``
+        ``frozen``)."""
+        k = 1 if self.by_ems else 0
+        frozen_mode = bool(owns) and not self.determined(chain[-1][1])
+        if frozen_mode:
+            pairs = [
+                self.frozen_scores(a, b, own)
                 for (a, b), own in zip(itertools.pairwise(chain), owns, strict=True)
             ]
-            whole = self.frozen_gain(chain[0], chain[-1], [n for own in owns for n in own])
-            out = {
-                "metric": self.metric,
-                "mode": "frozen base (the training part does not determine the model)",
-                "improvement": whole,
-                "dof": self.wh_test.dof,
-                "on": self.on,
-                "step_improvements": steps,
-            }
-            if places:
-                out["step_untestable"] = [untested_place(loc, self.test) for loc in places]
-            return out
-        scores = [self.score(m) for m in chain]
+            first, last = self.frozen_scores(chain[0], chain[-1], [n for own in owns for n in own])
+            scores = [first, *(b for _, b in pairs[:-1]), last]
+            step_gains = [1 - b[k] / a[k] for a, b in pairs]
+        else:
+            scores = [self.score(m) for m in chain]
+            step_gains = [1 - b[k] / a[k] for a, b in itertools.pairwise(scores)]
         rss, ems = [s[0] for s in scores], [s[1] for s in scores]
         decide = ems if self.by_ems else rss
         out: dict[str, Any] = {
+            "mode": "frozen" if frozen_mode else "refitted",
             "metric": self.metric,
             "rss_w_before": rss[0],
             "rss_w_after": rss[-1],
@@ -437,7 +445,7 @@ class HeldOut:
             "on": self.on,
             "step_rss_w": rss[1:],
             "step_ems": ems[1:],
-            "step_improvements": [1 - b / a for a, b in itertools.pairwise(decide)],
+            "step_improvements": step_gains,
         }
         if places:
             out["step_untestable"] = [untested_place(loc, self.test) for loc in places]
@@ -587,6 +595,9 @@ HELDOUT_KEYS = (
 )
 # the gain of :class:`CrossValidation`, present where no check of HELDOUT_KEYS reaches
 CV_KEY = "heldout_cv_improvement"
+# set where a check that judged the finding could fit only its own parameters (short
+# records: HeldOut.frozen_gain); such a check leans towards the model without it
+FROZEN_KEY = "heldout_frozen"
 
 
 def heldout_judged(finding: dict[str, Any]) -> dict[str, float]:
@@ -644,6 +655,12 @@ class Confirm:
             report[gain_key] = gain
             if why:
                 report[why_key] = why
+        # which checks could fit only the finding's own parameters (the report says so)
+        frozen_by = [
+            k
+            for (k, _), j in zip(HELDOUT_KEYS, self.judges, strict=False)
+            if not j.determined(refit.spec)
+        ]
         judged = heldout_judged(report)
         if not judged:
             # Session 11's benchmark: 6 of 28 named findings (4 bumps, 2 impacts) acted
@@ -654,7 +671,11 @@ class Confirm:
             report[CV_KEY] = self.cv.gain(
                 current, (refit.model, refit.spec, refit.theta), own=_own(current, refit)
             )
+            if not self.cv.determined(refit.spec):
+                frozen_by.append(CV_KEY)
             judged = heldout_judged(report)
+        if any(k in judged for k in frozen_by):
+            report[FROZEN_KEY] = True
         ok = all(g > 0 for g in judged.values())
         report["heldout_confirmed"] = bool(judged) and ok
         return ok, report
@@ -704,13 +725,25 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
 
 
 def _figures(
-    problem: Problem, model: Model, spec: ParamSpec, theta: np.ndarray, wh: Any
+    problem: Problem,
+    model: Model,
+    spec: ParamSpec,
+    theta: np.ndarray,
+    wh: Any,
+    sigma2: float | None = None,
 ) -> dict[str, float]:
+    """EMS [N²], BIC and whitened RSS [m²] of a fitted model; the BIC of a known variance
+    ``sigma2`` [m²] where the selection used one (short records, :func:`bic_known`)."""
     fn = whitened_residual(problem, model, spec, wh)
     r_w = np.asarray(fn(jnp.asarray(theta)))
     rss = float(r_w @ r_w)
     pb = with_model(problem, model, spec)
-    return {"ems": pb.ems(theta), "bic": bic(rss, wh.dof, spec.n_free), "rss_whitened": rss}
+    b = (
+        bic(rss, wh.dof, spec.n_free)
+        if sigma2 is None
+        else bic_known(rss, wh.dof, spec.n_free, sigma2)
+    )
+    return {"ems": pb.ems(theta), "bic": b, "rss_whitened": rss}
 
 
 def with_rest(problem: Problem, theta: np.ndarray) -> Problem:
@@ -806,7 +839,7 @@ def diagnose(
     loc_before = locate(problem, sel.base_theta, **maps, n_mc=settings.n_mc, seed=settings.seed)
     fit: dict[str, dict[str, float]] = {
         "before": {
-            **_figures(problem, *base, wh),
+            **_figures(problem, *base, wh, sel.extra.get("bic_sigma2")),
             "whiteness_p": loc_before.ljung_box_p,
             "simulation_rms_m": simulation_error(problem, *base),
         },
@@ -864,7 +897,7 @@ def diagnose(
     else:
         locate_note = ""
     fit["after"] = {
-        **_figures(problem, *final, wh),
+        **_figures(problem, *final, wh, sel.extra.get("bic_sigma2")),
         "whiteness_p": loc_after.ljung_box_p if loc_after is not None else float("nan"),
         "simulation_rms_m": simulation_error(problem, *final),
     }

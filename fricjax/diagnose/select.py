@@ -599,6 +599,7 @@ def forward_select(
     steps: list[Step] = []
     used: set[str] = set()
     sigma = float(np.sqrt(rss / max(wh.dof - spec.n_free, 1)))
+    first_known: float | None = None
     for _ in range(max_terms):
         fn = whitened_residual(problem, model, spec, wh)
         r_w = np.asarray(_eval(fn, jnp.asarray(theta)))
@@ -622,6 +623,8 @@ def forward_select(
         # (30 whitened dimensions, 26 base parameters: a three-parameter term leaves one),
         # and the residual's degrees of freedom are needed for nothing but the maps.
         known = sigma2 if external else None
+        if not steps:
+            first_known = known
         min_left = 1 if external else MIN_DOF_LEFT
         bic_base = (
             bic(float(r_w @ r_w), wh.dof, spec.n_free)
@@ -786,4 +789,6 @@ def forward_select(
         used.add(chosen.effect)
         # the whitener stays that of the base fit, so every RSS_w and BIC is comparable
         model, spec, theta = chosen.model, chosen.spec, chosen.theta
-    return Selection(steps, model, spec, theta, base_theta, wh, sigma)
+    # the BIC form of the first step, for the fit figures of the whole diagnosis
+    extra = {"bic_sigma2": first_known} if first_known is not None else {}
+    return Selection(steps, model, spec, theta, base_theta, wh, sigma, extra)

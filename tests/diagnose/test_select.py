@@ -86,6 +86,39 @@ def test_a_short_null_record_says_its_evidence_is_weak(
 
 
 @pytest.mark.slow
+def test_a_short_record_names_a_visible_harmonic_and_says_how_its_check_was_made(
+    tmp_path: Path,
+) -> None:
+    """0.272 s, 300 N at 60 Hz (above the drive's ten harmonics of ~5 Hz, which absorb one
+    at 37 Hz on so short a record): named; its held-out check could fit only the harmonic's own
+    parameters (the first 70 % has fewer whitened dimensions than base + term have
+    parameters), and the report says so; σ̂ comes from the third difference, so the fit
+    figures' BIC is that of a known variance and their difference is the finding's ΔBIC."""
+    term, params = cat.ExtraHarmonic(), {"harm_A": 300.0, "harm_B": 0.0, "harm_f": 60.0}
+    rec, truth = paper_twin(
+        duration=0.272,
+        seed=5,
+        model=PAPER_MODEL.with_terms([term]),
+        truth={**PAPER_TRUTH, **params},
+    )
+    path = write_recording(rec, tmp_path / "short.h5", truth=truth)
+    diag, paths = diagnose_recording(
+        path, ROOT / "configs" / "paper.toml", out=tmp_path / "out", overrides=FAST
+    )
+    first = diag.findings[0]
+    assert first["effect"] == "extra_harmonic"
+    assert abs(first["params"]["harm_f"] - 60.0) < 0.5  # measured 60.03 Hz, 281 N
+    assert first["heldout_frozen"] and first["heldout_improvement"] > 0
+    assert diag.heldout["mode"] == "frozen" and diag.heldout["improvement"] > 0
+    assert "bic_sigma2" in diag.selection.extra
+    if len(diag.findings) == 1:
+        drop = diag.fit["before"]["bic"] - diag.fit["after"]["bic"]
+        assert drop == pytest.approx(first["delta_bic"], rel=1e-6)
+    report = paths["report"].read_text()
+    assert "only its own parameters fitted" in report and "--validation" in report
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("effect", ["impact"])
 def test_visible_effect_is_named_located_and_pays_on_held_out_data(
     paper_config: Config, effect: str, tmp_path: Path
