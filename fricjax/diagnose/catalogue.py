@@ -85,9 +85,11 @@ __all__ = [
     "bristle_state",
     "candidate",
     "cutoff_hz",
+    "drive_harmonic_note",
     "force_scale",
     "grid_size",
     "is_stateful",
+    "near_drive_harmonic",
     "ranges",
 ]
 
@@ -1048,6 +1050,47 @@ class ExtraHarmonicCandidate(_TermCandidate):
             f"A vibration of {_g(amp)} N at {_g(f)} Hz that the drive model does not contain "
             f"(a resonance, an unbalance or another excitation) runs through the whole record."
         )
+
+
+def near_drive_harmonic(
+    f_hz: float, named: Mapping[str, float], span_s: float
+) -> dict[str, float] | None:
+    """The drive harmonic ``f_i = i·ω/2π`` (seed eq. 5, i = 1..N over the model's ``Fp_i``)
+    nearest to a frequency ``f`` [Hz], when ``|f − f_i| < 1/T`` (T = ``span_s`` [s], the
+    record's span): over the record a sinusoid at f then drifts by less than one cycle
+    against the i-th harmonic, so the fit can move it into ``(Fp_i, φ_i)`` and back, and
+    the two cannot be told apart; a record longer than ``1/|f − f_i|`` separates them.
+
+    ``named``: the fitted parameters by name (needs ``omega`` [rad/s]); None when the model
+    has no drive or no harmonic is that close. Returns ``harmonic`` i,
+    ``harmonic_hz`` f_i, ``separation_hz`` |f − f_i| and ``resolution_hz`` 1/T.
+    """
+    omega = named.get("omega")
+    n = sum(1 for k in named if k.startswith("Fp_"))
+    if omega is None or n == 0 or not span_s > 0:
+        return None
+    f0 = float(omega) / (2.0 * math.pi)
+    i = int(np.clip(round(f_hz / f0), 1, n))
+    gap = abs(f_hz - i * f0)
+    if gap >= 1.0 / span_s:
+        return None
+    return {
+        "harmonic": float(i),
+        "harmonic_hz": i * f0,
+        "separation_hz": gap,
+        "resolution_hz": 1.0 / span_s,
+    }
+
+
+def drive_harmonic_note(clash: Mapping[str, float]) -> str:
+    """One sentence for a finding whose frequency is that close to a drive harmonic."""
+    i = int(clash["harmonic"])
+    return (
+        f" Its frequency lies {_g(clash['separation_hz'])} Hz from the drive's harmonic "
+        f"{i} ({_g(clash['harmonic_hz'])} Hz), within this record's frequency resolution "
+        f"(1/T = {_g(clash['resolution_hz'])} Hz): here it cannot be told apart from a "
+        f"change of that harmonic's amplitude and phase (Fp_{i}, phi_{i})."
+    )
 
 
 @dataclass(frozen=True)

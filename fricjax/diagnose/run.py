@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.diagnose.catalogue import candidate
+from fricjax.diagnose.catalogue import candidate, drive_harmonic_note, near_drive_harmonic
 from fricjax.diagnose.locate import (
     NOISE_MODELS,
     LocateReport,
@@ -693,6 +693,7 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
     not the held-out check."""
     location = candidate(refit.effect).location(refit.params, problem)
     gain = min(heldout_judged(report).values())
+    clash = _drive_clash(problem, refit)
     where_ = "; ".join(
         f"{k} [{float(v[0]):.4g}, {float(v[1]):.4g}]"
         if isinstance(v, list | tuple) and len(v) == 2
@@ -706,12 +707,13 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
             f"{refit.effect} it lowers BIC by {refit.delta_bic:.1f} on the whole record, but "
             f"that term made the fit on held-out data worse ({100 * gain:+.1f} %), so it is "
             "not claimed: no catalogue term explains this structure in a way that carries "
-            "over to data the fit has not seen."
+            "over to data the fit has not seen." + (drive_harmonic_note(clash) if clash else "")
         ),
         "location": location,
         "params": {},
         "delta_bic": refit.delta_bic,
         "p_value": p_value,
+        **({"near_drive_harmonic": clash} if clash else {}),
         "rejected_candidate": {
             "effect": refit.effect,
             "params": refit.params,
@@ -722,6 +724,16 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
             },
         },
     }
+
+
+def _drive_clash(problem: Problem, refit: Any) -> dict[str, float] | None:
+    """:func:`~fricjax.diagnose.catalogue.near_drive_harmonic` of an ``extra_harmonic``
+    refit, at the ω it was refitted with; None for any other term."""
+    if refit.effect != "extra_harmonic":
+        return None
+    t = np.asarray(problem.t)
+    span = float(t[-1] - t[0]) + float(t[1] - t[0]) if t.shape[0] > 1 else 0.0
+    return near_drive_harmonic(float(refit.params["harm_f"]), refit.spec.as_dict(refit.theta), span)
 
 
 def _figures(
@@ -1034,6 +1046,10 @@ def _finding(problem: Problem, step: Any, near_rest: float = 0.0) -> dict[str, A
             f" On this excitation its signature overlaps that of {step.runner_up} "
             f"(|cos| = {step.overlap:.2f}): the two cannot be told apart reliably."
         )
+    clash = _drive_clash(problem, chosen)
+    if clash:
+        out["near_drive_harmonic"] = clash
+        out["explanation"] += drive_harmonic_note(clash)
     if chosen.effect in NEAR_REST_LAWS and near_rest >= NEAR_REST_CAVEAT:
         others = [e for e in NEAR_REST_LAWS if e != chosen.effect]
         out["near_rest_caveat"] = {"near_rest_fraction": near_rest, "confusable_with": others}

@@ -16,6 +16,7 @@ from scipy import signal
 
 from fricjax.config import Config, parse_config
 from fricjax.data.preprocess import PreprocessSettings
+from fricjax.data.twin import PAPER_TRUTH
 from fricjax.diagnose.catalogue import (
     CATALOGUE,
     MASS_FRACTION,
@@ -36,6 +37,7 @@ from fricjax.diagnose.catalogue import (
     force_scale,
     grid_size,
     is_stateful,
+    near_drive_harmonic,
     ranges,
 )
 from fricjax.errors import FricjaxError
@@ -355,6 +357,21 @@ def test_location_and_explanation_report_the_parameters(twin_problem: Problem) -
     assert "10 N" in candidate("extra_harmonic").explain(values["extra_harmonic"], twin_problem)
     assert "+10.0 %" in candidate("mass_error").explain(values["mass_error"], twin_problem)
     assert "37 Hz" in candidate("extra_harmonic").explain(values["extra_harmonic"], twin_problem)
+
+
+def test_a_frequency_is_inseparable_from_a_drive_harmonic_within_one_over_t() -> None:
+    # PAPER_TRUTH: ω = 2π·5 rad/s, harmonics 5..50 Hz
+    clash = near_drive_harmonic(37.0, PAPER_TRUTH, 0.272)
+    assert clash is not None and clash["harmonic"] == 7
+    assert clash["separation_hz"] == pytest.approx(2.0)
+    # two cycles of drift over 1 s: separable; 0.3 Hz over 2 s: less than one cycle
+    assert near_drive_harmonic(37.0, PAPER_TRUTH, 1.0) is None
+    assert near_drive_harmonic(35.3, PAPER_TRUTH, 2.0)["harmonic"] == 7
+    # above the 10th harmonic (50 Hz) only the 10th is a neighbour; none without a drive
+    assert near_drive_harmonic(53.0, PAPER_TRUTH, 0.272)["harmonic"] == 10
+    assert near_drive_harmonic(60.0, PAPER_TRUTH, 0.272) is None
+    no_drive = {k: v for k, v in PAPER_TRUTH.items() if k != "omega"}
+    assert near_drive_harmonic(35.0, no_drive, 0.272) is None
 
 
 def test_cutoff_of_savgol_is_its_half_power_frequency(twin_problem: Problem) -> None:

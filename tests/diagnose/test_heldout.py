@@ -160,6 +160,27 @@ def test_a_rejected_candidate_is_reported_unexplained_at_its_place(cases: dict) 
     }
     assert out["delta_bic"] == 80.0 and out["p_value"] == 2e-4
     assert "-31.0 %" in out["explanation"]  # the worst check that judged it
+    # 37 Hz is 2 Hz from the drive's 7th harmonic (35 Hz), more than 1/T = 1 Hz on 1 s
+    assert "near_drive_harmonic" not in out
+
+
+def test_a_harmonic_within_the_resolution_of_a_drive_harmonic_is_said_inseparable(
+    short_problems: dict,
+) -> None:
+    # On 0.272 s (1/T = 3.68 Hz) the same 37 Hz lies inside the 7th harmonic's resolution:
+    # whatever the check said, the report must say why the two cannot be told apart.
+    problem = short_problems[True]
+    refit = _harmonic_refit(problem)
+    out = _rejected(problem, refit, 2e-4, {"heldout_improvement": -0.28})
+    clash = out["near_drive_harmonic"]
+    assert clash["harmonic"] == 7
+    assert clash["harmonic_hz"] == pytest.approx(35.0)
+    assert clash["separation_hz"] == pytest.approx(2.0)
+    # the span the fit sees (the preprocessing trims the filter's edges), one sample added
+    t = np.asarray(problem.t)
+    assert clash["resolution_hz"] == pytest.approx(1 / (t[-1] - t[0] + t[1] - t[0]))
+    assert 3.6 < clash["resolution_hz"] < 4.5
+    assert "(Fp_7, phi_7)" in out["explanation"]
 
 
 def test_forward_selection_asks_the_held_out_check_before_it_adds_a_term(
