@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
-from fricjax.diagnose.run import CV_FOLDS, FROZEN_KEY
+from fricjax.diagnose.run import CV_FOLDS, FROZEN_KEY, SPLIT_DEFERS
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt, format_table
 
@@ -226,7 +226,10 @@ def _heldout_text(finding: dict) -> str:
     gain = f"{100 * finding['heldout_improvement']:+.1f} %"
     if "heldout_split_improvement" in finding:
         split = f"{100 * finding['heldout_split_improvement']:+.1f} %"
-        if finding.get("heldout_split_untestable"):
+        why = finding.get("heldout_split_untestable")
+        if why == SPLIT_DEFERS:
+            split += " (not judging: the record's first part cannot determine the model)"
+        elif why:
             split += " (untested there)"
         gain += f" on the second recording, {split} on the record's last part"
     if finding.get("heldout_untestable"):

@@ -15,6 +15,8 @@ from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.locate import default_whitener
 from fricjax.diagnose.run import (
     CV_KEY,
+    FROZEN_KEY,
+    SPLIT_DEFERS,
     Confirm,
     CrossValidation,
     HeldOut,
@@ -313,6 +315,47 @@ def test_a_short_record_s_check_pays_for_a_hidden_harmonic_and_not_for_noise(
     # and costs where the record lacks it (its amplitude fitted to noise)
     assert short_checks[True][1] > 0.5
     assert short_checks[False][1] < 0.02
+
+
+@pytest.fixture(scope="module")
+def short_repeats(paper_config: Config) -> dict[bool, Problem]:
+    """A second ram of each short twin: same plant and motion, fresh noise."""
+    out = {}
+    for hidden in (True, False):
+        truth = {**PAPER_TRUTH, **SHORT_HARMONIC} if hidden else dict(PAPER_TRUTH)
+        model = PAPER_MODEL.with_terms([cat.ExtraHarmonic()]) if hidden else PAPER_MODEL
+        rec, _ = paper_twin(duration=0.272, seed=6, model=model, truth=truth)
+        out[hidden] = build_problem(rec, paper_config)
+    return out
+
+
+def test_a_second_recording_judges_a_short_record_s_finding_as_the_selection_fit_it(
+    short_problems: dict, short_checks: dict, short_repeats: dict
+) -> None:
+    # With a second ram the record's own split, which could fit only the harmonic's
+    # parameters, defers: the models fitted on the whole first record (as the selection
+    # fits them) are scored on the second, and the harmonic pays there only where it is.
+    gains = {}
+    for hidden, problem in short_problems.items():
+        _, _, base, after = short_checks[hidden]
+        confirm = Confirm(problem, 0.3, short_repeats[hidden], "auto")
+        refit = SimpleNamespace(
+            effect="extra_harmonic",
+            model=after[0],
+            spec=after[1],
+            theta=after[2],
+            params=dict(SHORT_HARMONIC),
+            delta_bic=80.0,
+        )
+        ok, report = confirm(base, refit)
+        second, split = confirm.judges
+        assert second.determined(after[1]) and not split.determined(after[1])
+        assert report["heldout_split_untestable"] == SPLIT_DEFERS
+        assert FROZEN_KEY not in report
+        assert set(heldout_judged(report)) == {"heldout_improvement"}
+        assert ok is (report["heldout_improvement"] > 0)
+        gains[hidden] = report["heldout_improvement"]
+    assert gains[True] > 0.5 and gains[False] < 0.0
 
 
 def test_the_next_eligible_candidates_are_refitted_when_the_first_are_refused(
