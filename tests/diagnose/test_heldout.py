@@ -269,16 +269,20 @@ def test_the_report_says_which_check_judged_a_local_finding() -> None:
 SHORT_HARMONIC = {"harm_A": 300.0, "harm_B": 0.0, "harm_f": 37.0}
 
 
-@pytest.fixture(scope="module")
-def short_problems(paper_config: Config) -> dict[bool, Problem]:
-    """0.272 s twins with and without a 300 N harmonic at 37 Hz."""
+def _short_twins(config: Config, seed: int) -> dict[bool, Problem]:
+    """0.272 s twins with and without a 300 N harmonic at 37 Hz (``seed``: the noise)."""
     out = {}
     for hidden in (True, False):
         truth = {**PAPER_TRUTH, **SHORT_HARMONIC} if hidden else dict(PAPER_TRUTH)
         model = PAPER_MODEL.with_terms([cat.ExtraHarmonic()]) if hidden else PAPER_MODEL
-        rec, _ = paper_twin(duration=0.272, seed=5, model=model, truth=truth)
-        out[hidden] = build_problem(rec, paper_config)
+        rec, _ = paper_twin(duration=0.272, seed=seed, model=model, truth=truth)
+        out[hidden] = build_problem(rec, config)
     return out
+
+
+@pytest.fixture(scope="module")
+def short_problems(paper_config: Config) -> dict[bool, Problem]:
+    return _short_twins(paper_config, 5)
 
 
 @pytest.fixture(scope="module")
@@ -320,13 +324,7 @@ def test_a_short_record_s_check_pays_for_a_hidden_harmonic_and_not_for_noise(
 @pytest.fixture(scope="module")
 def short_repeats(paper_config: Config) -> dict[bool, Problem]:
     """A second ram of each short twin: same plant and motion, fresh noise."""
-    out = {}
-    for hidden in (True, False):
-        truth = {**PAPER_TRUTH, **SHORT_HARMONIC} if hidden else dict(PAPER_TRUTH)
-        model = PAPER_MODEL.with_terms([cat.ExtraHarmonic()]) if hidden else PAPER_MODEL
-        rec, _ = paper_twin(duration=0.272, seed=6, model=model, truth=truth)
-        out[hidden] = build_problem(rec, paper_config)
-    return out
+    return _short_twins(paper_config, 6)
 
 
 def test_a_second_recording_judges_a_short_record_s_finding_as_the_selection_fit_it(
