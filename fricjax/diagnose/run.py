@@ -943,6 +943,8 @@ def diagnose(
     # A rejected candidate's structure is still significant on the record: reported as
     # unexplained at its place (and then the maps' own leftover would repeat it).
     leftover = _unexplained(loc_after, settings.alpha) if loc_after is not None else None
+    if leftover is None and not findings and not rejected:
+        leftover = _excess(problem, sel, settings.alpha)
     findings += rejected or ([leftover] if leftover is not None else [])
     extra_sim = {} if sim is None else {"simulation_test": _simulation_summary(sim)}
     return Diagnosis(
@@ -1120,6 +1122,33 @@ def _unexplained(loc: LocateReport, alpha: float) -> dict[str, Any] | None:
         "params": {"mean_residual_N": worst.mean_residual},
         "delta_bic": worst.score - math.log(max(len(loc.bins), 2)),
         "p_value": family,
+    }
+
+
+def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
+    """``unexplained`` over the whole record where a short record's base leaves an excess
+    over the noise of the third difference (:func:`~fricjax.diagnose.select.lack_of_fit_p`
+    below ``alpha``) that no candidate explains and the maps do not place: the record
+    holds something the model lacks, nothing says what or where."""
+    if not sel.steps or sel.steps[0].lack_of_fit_p >= alpha:
+        return None
+    p, excess = sel.steps[0].lack_of_fit_p, sel.steps[0].lack_of_fit_excess
+    t = np.asarray(problem.t)
+    return {
+        "effect": "unexplained",
+        "explanation": (
+            "The fitted model leaves more residual than the measurement noise accounts for "
+            f"({excess:.1f} σ² in excess, p = {p:.2g}, against the noise estimated from the "
+            "third difference of x), "
+            "but no catalogue term explains it and no single interval, band or frequency "
+            "stands out: this record is too short to say where."
+        ),
+        "location": {"time_s": [float(t[0]), float(t[-1])]},
+        "params": {},
+        # a term that explained all of it would lower BIC by about this, less its own
+        # parameters' penalty
+        "delta_bic": excess,
+        "p_value": p,
     }
 
 

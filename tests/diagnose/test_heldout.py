@@ -20,6 +20,7 @@ from fricjax.diagnose.run import (
     Confirm,
     CrossValidation,
     HeldOut,
+    _excess,
     _rejected,
     frozen,
     heldout_check,
@@ -356,13 +357,15 @@ def test_a_second_recording_judges_a_short_record_s_finding_as_the_selection_fit
     assert gains[True] > 0.5 and gains[False] < 0.0
 
 
-def test_the_next_eligible_candidates_are_refitted_when_the_first_are_refused(
+def test_a_short_record_s_significant_excess_has_every_candidate_refitted_first(
     short_problems: dict,
 ) -> None:
-    # The short record's 300 N harmonic makes four candidates significant. With one refit
-    # slot and a check that refuses every candidate, forward selection refits each of them
-    # in turn (measured ΔBIC: harmonic 514, periodic 458, impact 397, bump 375); it asks
-    # only the harmonic, as the others re-explain the structure it refused with less gain.
+    # The short record's 300 N harmonic leaves the base an excess far above the noise of
+    # the third difference, so every candidate is refitted (all at once, before any is
+    # asked) and judged by its likelihood ratio. A check that refuses everything is asked
+    # first about the best, the harmonic (ΔBIC 514), and not about those that re-explain
+    # what it refused with less (periodic 457, impact 396, bump 375); the drift (82), a
+    # structure of its own, is asked next.
     problem = short_problems[True]
     asked: list[str] = []
 
@@ -376,8 +379,33 @@ def test_the_next_eligible_candidates_are_refitted_when_the_first_are_refused(
         problem, problem.theta(PAPER_TRUTH), candidates=pool, n_mc=400, n_refit=1, confirm=refuse
     )
     (step,) = sel.steps
-    eligible = [sc.effect for sc in step.scores if sc.p_value < 0.01 / len(pool)]
-    assert len(eligible) == 4 and "friction_drift" not in eligible
-    assert sorted(rf.effect for rf in step.refits) == sorted(eligible)
+    assert step.lack_of_fit_p < 1e-6
+    assert sorted(rf.effect for rf in step.refits) == sorted(effects)
+    assert {sc.test for sc in step.scores} == {"likelihood ratio"}
     assert max(step.refits, key=lambda rf: rf.delta_bic).effect == "extra_harmonic"
-    assert asked == ["extra_harmonic"] and step.chosen is None
+    assert asked[0] == "extra_harmonic" and step.chosen is None
+    assert not {"impact", "position_periodic", "position_bump"} & set(asked)
+
+
+def test_a_short_null_record_leaves_no_significant_excess(short_problems: dict) -> None:
+    problem = short_problems[False]
+    pool = [cat.candidate(e) for e in ("extra_harmonic", "impact", "friction_drift")]
+    sel = forward_select(problem, problem.theta(PAPER_TRUTH), candidates=pool, n_mc=400)
+    (step,) = sel.steps
+    assert step.lack_of_fit_p > 0.01
+    assert step.chosen is None and step.refits == []
+    assert {sc.test for sc in step.scores} == {"score"}
+
+
+def test_a_short_record_s_unplaced_excess_is_reported_unexplained(short_problems: dict) -> None:
+    problem = short_problems[True]
+    step = SimpleNamespace(lack_of_fit_p=3e-9, lack_of_fit_excess=41.5)
+    out = _excess(problem, SimpleNamespace(steps=[step]), 0.01)
+    t = np.asarray(problem.t)
+    assert out["effect"] == "unexplained" and out["params"] == {}
+    assert out["location"] == {"time_s": [t[0], t[-1]]}
+    assert out["p_value"] == 3e-9 and out["delta_bic"] == 41.5
+    assert "41.5 σ²" in out["explanation"]
+    calm = SimpleNamespace(lack_of_fit_p=0.2, lack_of_fit_excess=3.0)
+    assert _excess(problem, SimpleNamespace(steps=[calm]), 0.01) is None
+    assert _excess(problem, SimpleNamespace(steps=[]), 0.01) is None

@@ -286,3 +286,20 @@ def test_with_sigma_known_the_bic_of_a_null_term_stays_below_the_bar() -> None:
         assert known[-1] == pytest.approx(rb @ rb - rt @ rt - ke * np.log(m))
     assert np.mean(np.array(profile) > 10) > 0.5
     assert np.mean(np.array(known) > 10) < 0.01
+
+
+def test_the_lack_of_fit_test_against_an_outside_sigma_is_uniform_on_nulls() -> None:
+    # A short record's base leaves dof = 8 whitened dimensions of pure noise, and σ̂² comes
+    # from the third difference with ν = 99 (0.272 s): F = (RSS/dof)/σ̂² ~ F(8, 99), so
+    # its p-value is uniform; with an excess of 5 σ² per dimension it is tiny.
+    from fricjax.diagnose.select import lack_of_fit_p
+
+    rng = np.random.default_rng(1)
+    dof, nu = 8, 99
+    p = np.array(
+        [lack_of_fit_p(rng.chisquare(dof), dof, rng.chisquare(nu) / nu, nu) for _ in range(4000)]
+    )
+    assert abs(np.mean(p < 0.05) - 0.05) < 0.012
+    assert abs(np.mean(p < 0.01) - 0.01) < 0.006
+    assert abs(np.median(p) - 0.5) < 0.03
+    assert lack_of_fit_p(dof * 6.0, dof, 1.0, nu) < 1e-5
