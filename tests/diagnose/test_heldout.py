@@ -263,6 +263,16 @@ def test_the_report_says_which_check_judged_a_local_finding() -> None:
     refused = _heldout_verdict(local | {CV_KEY: -0.05, "heldout_confirmed": False})
     assert "-5.0 %" in refused and "NOT confirmed" in refused
     assert "cross-validation" not in _heldout_verdict(_named(0.1) | {"heldout_confirmed": True})
+    # a split that defers to the second recording is reported, and said not to judge
+    deferred = {
+        "heldout_improvement": 0.31,
+        "heldout_split_improvement": -2.5,
+        "heldout_split_untestable": SPLIT_DEFERS,
+        "heldout_confirmed": True,
+    }
+    text = _heldout_verdict(deferred)
+    assert "+31.0 % on the second recording" in text and "-250.0 %" in text
+    assert "not judging" in text and "untested there" not in text
 
 
 # -- short records: the training part cannot determine the model ----------------------------
