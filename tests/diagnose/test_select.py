@@ -93,7 +93,8 @@ def test_a_short_record_names_a_visible_harmonic_and_says_how_its_check_was_made
     at 37 Hz on so short a record): named; its held-out check could fit only the harmonic's own
     parameters (the first 70 % has fewer whitened dimensions than base + term have
     parameters), and the report says so; σ̂ comes from the third difference, so the fit
-    figures' BIC is that of a known variance and their difference is the finding's ΔBIC."""
+    figures' BIC is that of a known variance and their difference is the finding's ΔBIC
+    (or a little more, where the base refitted from the term's end point fits better)."""
     term, params = cat.ExtraHarmonic(), {"harm_A": 300.0, "harm_B": 0.0, "harm_f": 60.0}
     rec, truth = paper_twin(
         duration=0.272,
@@ -112,8 +113,11 @@ def test_a_short_record_names_a_visible_harmonic_and_says_how_its_check_was_made
     assert diag.heldout["mode"] == "frozen" and diag.heldout["improvement"] > 0
     assert "bic_sigma2" in diag.selection.extra
     if len(diag.findings) == 1:
+        # The finding's ΔBIC is taken against the better of the base fit and the base
+        # refitted from the term's end point (its excess over the noise is significant, so
+        # it was refitted and rebased: 255.22 against 255.29 measured), never more.
         drop = diag.fit["before"]["bic"] - diag.fit["after"]["bic"]
-        assert drop == pytest.approx(first["delta_bic"], rel=1e-6)
+        assert first["delta_bic"] <= drop + 1e-9 and drop - first["delta_bic"] < 1.0
     report = paths["report"].read_text()
     assert "only its own parameters fitted" in report and "--validation" in report
 
