@@ -22,7 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.diagnose.catalogue import candidate, drive_harmonic_note, near_drive_harmonic
+from fricjax.diagnose.catalogue import (
+    candidate,
+    drive_harmonic_note,
+    near_drive_harmonic,
+    ranges,
+)
 from fricjax.diagnose.locate import (
     NOISE_MODELS,
     LocateReport,
@@ -752,9 +757,10 @@ def _drive_clash(problem: Problem, refit: Any) -> dict[str, float] | None:
     refit, at the ω it was refitted with; None for any other term."""
     if refit.effect != "extra_harmonic":
         return None
-    t = np.asarray(problem.t)
-    span = float(t[-1] - t[0]) + float(t[1] - t[0]) if t.shape[0] > 1 else 0.0
-    return near_drive_harmonic(float(refit.params["harm_f"]), refit.spec.as_dict(refit.theta), span)
+    r = ranges(problem)
+    return near_drive_harmonic(
+        float(refit.params["harm_f"]), refit.spec.as_dict(refit.theta), r.duration + r.dt
+    )
 
 
 def _figures(
@@ -1133,7 +1139,7 @@ def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
     if not sel.steps or sel.steps[0].lack_of_fit_p >= alpha:
         return None
     p, excess = sel.steps[0].lack_of_fit_p, sel.steps[0].lack_of_fit_excess
-    t = np.asarray(problem.t)
+    r = ranges(problem)
     return {
         "effect": "unexplained",
         "explanation": (
@@ -1143,7 +1149,7 @@ def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
             "but no catalogue term explains it and no single interval, band or frequency "
             "stands out: this record is too short to say where."
         ),
-        "location": {"time_s": [float(t[0]), float(t[-1])]},
+        "location": {"time_s": [r.t0, r.t1]},
         "params": {},
         # a term that explained all of it would lower BIC by about this, less its own
         # parameters' penalty
