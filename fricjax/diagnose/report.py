@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
-from fricjax.diagnose.run import CV_FOLDS, FROZEN_KEY, SPLIT_DEFERS
+from fricjax.diagnose.run import CV_FOLDS, CV_FOLDS_KEY, FROZEN_KEY, SPLIT_DEFERS, SPLIT_FROZEN
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt, format_table
 
@@ -235,10 +235,13 @@ def _heldout_text(finding: dict) -> str:
     if finding.get("heldout_untestable"):
         if finding.get("heldout_cv_improvement") is not None:
             cv = f"{100 * finding['heldout_cv_improvement']:+.1f} %"
+            k = finding.get(CV_FOLDS_KEY, CV_FOLDS)
             verdict = "confirmed" if finding.get("heldout_confirmed") else "NOT confirmed"
+            why = finding["heldout_untestable"]
+            said = "not judging" if why == SPLIT_FROZEN else "untested"
             return (
-                f"{gain} (untested: {finding['heldout_untestable']}); judged instead by "
-                f"{CV_FOLDS}-fold cross-validation over the record's whitened coordinates: "
+                f"{gain} ({said}: {why}); judged instead by "
+                f"{k}-fold cross-validation over the record's whitened coordinates: "
                 f"{cv} ({verdict}; a second recording that passes there, --validation, is "
                 "the stronger test)"
             )

@@ -14,14 +14,18 @@ from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.locate import default_whitener
 from fricjax.diagnose.run import (
+    CV_FOLDS,
+    CV_FOLDS_KEY,
     CV_KEY,
     FROZEN_KEY,
     SPLIT_DEFERS,
+    SPLIT_FROZEN,
     Confirm,
     CrossValidation,
     HeldOut,
     _excess,
     _rejected,
+    cv_folds,
     frozen,
     heldout_check,
     heldout_judged,
@@ -273,6 +277,17 @@ def test_the_report_says_which_check_judged_a_local_finding() -> None:
     text = _heldout_verdict(deferred)
     assert "+31.0 % on the second recording" in text and "-250.0 %" in text
     assert "not judging" in text and "untested there" not in text
+    # a short record's frozen split is reported, the cross-validation judges
+    short = {
+        "heldout_improvement": -13.7,
+        "heldout_untestable": SPLIT_FROZEN,
+        CV_KEY: 0.46,
+        CV_FOLDS_KEY: 11,
+        "heldout_confirmed": True,
+    }
+    text = _heldout_verdict(short)
+    assert "-1370.0 % (not judging: its first part cannot determine" in text
+    assert "11-fold cross-validation" in text and "+46.0 % (confirmed" in text
 
 
 # -- short records: the training part cannot determine the model ----------------------------
@@ -364,6 +379,53 @@ def test_a_second_recording_judges_a_short_record_s_finding_as_the_selection_fit
         assert set(heldout_judged(report)) == {"heldout_improvement"}
         assert ok is (report["heldout_improvement"] > 0)
         gains[hidden] = report["heldout_improvement"]
+    assert gains[True] > 0.5 and gains[False] < 0.0
+
+
+def test_cross_validation_takes_as_many_folds_as_a_refit_of_every_parameter_needs() -> None:
+    # 43 whitened coordinates (a 0.272 s record), 29 parameters: five folds of 8 would
+    # train on 35, 4 beyond 29 + MIN_DOF_LEFT; folds of 3 keep 9 = 3·3, fourteen of them
+    # (folds of 4 would keep 8 < 3·4); with 34 coordinates one is left out at a time; a
+    # long record keeps five, and so does one where even a single coordinate held out
+    # leaves too few (the frozen check)
+    from fricjax.diagnose.select import MIN_DOF_LEFT
+
+    k = cv_folds(43, 29)
+    assert k == 14 and 43 - 43 // k - 29 - MIN_DOF_LEFT >= 3 * (43 // k)
+    assert 43 - (43 // k + 1) - 29 - MIN_DOF_LEFT < 3 * (43 // k + 1)
+    assert cv_folds(34, 29) == 34
+    assert cv_folds(154, 29) == CV_FOLDS
+    assert cv_folds(31, 29) == CV_FOLDS
+    assert cv_folds(43, 0) == CV_FOLDS
+
+
+def test_without_a_second_recording_a_short_record_is_judged_by_a_cross_validation_that_refits(
+    short_problems: dict, short_checks: dict
+) -> None:
+    # The split could fit only the harmonic's parameters (the base frozen where it absorbed
+    # part of the effect), so it is reported and does not judge; the cross-validation with
+    # folds small enough to refit all 29 parameters judges: the harmonic pays only where
+    # it is.
+    gains = {}
+    for hidden, problem in short_problems.items():
+        _, _, base, after = short_checks[hidden]
+        confirm = Confirm(problem, 0.3, None, "auto")
+        refit = SimpleNamespace(
+            effect="extra_harmonic",
+            model=after[0],
+            spec=after[1],
+            theta=after[2],
+            params=dict(SHORT_HARMONIC),
+            delta_bic=80.0,
+        )
+        ok, report = confirm(base, refit)
+        (split,) = confirm.judges
+        assert not split.determined(after[1])
+        assert report["heldout_untestable"] == SPLIT_FROZEN
+        assert report[CV_FOLDS_KEY] > CV_FOLDS and FROZEN_KEY not in report
+        assert set(heldout_judged(report)) == {CV_KEY}
+        assert ok is (report[CV_KEY] > 0)
+        gains[hidden] = report[CV_KEY]
     assert gains[True] > 0.5 and gains[False] < 0.0
 
 

@@ -307,3 +307,58 @@ def test_the_lack_of_fit_test_against_an_outside_sigma_is_uniform_on_nulls() -> 
     assert abs(np.mean(p < 0.01) - 0.01) < 0.006
     assert abs(np.median(p) - 0.5) < 0.03
     assert lack_of_fit_p(dof * 6.0, dof, 1.0, nu) < 1e-5
+
+
+def test_refit_starts_lead_adds_a_start_in_front() -> None:
+    # A lead index is the first start and one more than the usual three; a lead that is a
+    # grid neighbour of the statistic's best keeps that best out (they share one basin).
+    from fricjax.diagnose.select import N_STARTS, refit_starts
+
+    f = np.linspace(10.0, 100.0, 91)
+    stats = np.exp(-((f - 74.0) ** 2) / 4.0) * 50 + np.exp(-((f - 30.0) ** 2) / 4.0) * 40
+    raw = np.exp(-((f - 68.0) ** 2) / 4.0) * 60
+    points = [{"harm_f": float(v)} for v in f]
+    lead = int(np.argmin(np.abs(f - 50.0)))
+    picked = [points[i]["harm_f"] for i in refit_starts(stats, raw, points, lead=(lead,))]
+    assert picked == [50.0, 74.0, 68.0, 30.0] and len(picked) == N_STARTS + 1
+    near = int(np.argmin(np.abs(f - 73.0)))
+    picked = [points[i]["harm_f"] for i in refit_starts(stats, raw, points, lead=(near,))]
+    assert picked[0] == 73.0 and 74.0 not in picked
+
+
+def test_boxed_gain_sees_what_a_base_held_at_its_box_leaves_in_span_j() -> None:
+    # A linear base of 3 parameters, the first at its upper bound; the residual wants it
+    # higher still (2 units along its column) plus noise. The projected score projects
+    # that column out and sees nothing of a candidate column equal to it; the boxed gain,
+    # which keeps the parameter at its bound, finds the 4 units² (up to the noise).
+    from fricjax.diagnose.select import boxed_base, boxed_gains
+    from fricjax.params import Param, ParamSpec
+
+    rng = np.random.default_rng(3)
+    m = 40
+    j = np.linalg.qr(rng.normal(size=(m, 3)))[0]
+    spec = ParamSpec(
+        (
+            Param("p0", "N", 0.0, 1.0, 0.5),
+            Param("p1", "N", -10.0, 10.0, 0.0),
+            Param("p2", "N", -10.0, 10.0, 0.0),
+        )
+    )
+    theta = np.array([1.0, 0.0, 0.0])  # p0 at its upper bound
+    noise = 0.01 * rng.normal(size=m)
+    r = -2.0 * j[:, 0] + 0.5 * j[:, 1] + noise  # r + J·δ: δ0 = +2 is outside the box
+    boxed = boxed_base(j, r, theta, spec)
+    assert boxed.q_free.shape == (m, 2)
+    # the movable columns take their parts; p0's is left
+    assert boxed.r_free @ j[:, 0] == pytest.approx(-2.0, abs=0.05)
+    cols = np.stack([j[:, [0]], rng.normal(size=(m, 1))])  # [G=2, M, k=1]
+    gains = boxed_gains(boxed, cols)
+    assert gains[0] == pytest.approx(4.0, rel=0.05)
+    assert gains[1] < 0.5 * gains[0]
+    r_perp = r - j @ (j.T @ r)
+    assert abs(r_perp @ j[:, 0]) < 1e-12  # what the projected score would see of it
+    # with the box wide open nothing is held: p0's column is projected out too
+    wide = ParamSpec((Param("p0", "N", -10.0, 10.0, 0.5), *spec.params[1:]))
+    open_box = boxed_base(j, r, theta, wide)
+    assert open_box.q_free.shape == (m, 3)
+    assert boxed_gains(open_box, cols[:1])[0] < 1e-20
