@@ -148,6 +148,15 @@ def run_order(specs: Sequence[gen.CaseSpec]) -> list[gen.CaseSpec]:
     return out
 
 
+def _judged_gain(f: dict[str, Any]) -> float | None:
+    """The smallest held-out gain among the checks that judged finding ``f``
+    (:func:`fricjax.diagnose.run.heldout_judged`); its primary gain where none did."""
+    from fricjax.diagnose.run import heldout_judged
+
+    judged = heldout_judged(f)
+    return min(judged.values()) if judged else f.get("heldout_improvement")
+
+
 def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
     keys = (
         "effect",
@@ -161,6 +170,7 @@ def _finding_row(f: dict[str, Any]) -> dict[str, Any]:
         "heldout_split_improvement",
         "heldout_split_untestable",
         "heldout_cv_improvement",
+        "heldout_cv_folds",
         "heldout_confirmed",
         "heldout_frozen",
         "near_rest_caveat",
@@ -428,7 +438,9 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
         row["sim_after"] = fit["after"].get("simulation_rms_m")
     named = [f for f in findings if f["effect"] != UNEXPLAINED]
     row["named_findings"] = len(named)
-    row["heldout"] = [f.get("heldout_improvement") for f in named]
+    # the gain of the check that decided (the smallest of those that judged: a record's
+    # split that could fit only the term's parameters is reported but does not judge)
+    row["heldout"] = [_judged_gain(f) for f in named]
     # confirmed: a gain in every held-out check that reaches the finding's place (the
     # record's last part, and the second recording under --repeat); None: not reported
     row["confirmed"] = [f.get("heldout_confirmed") for f in named]
@@ -1060,7 +1072,8 @@ def report(
                 ["  confirmed: a gain in every held-out check that reaches it", f"{with_gain}"],
                 [
                     "  judged by cross-validation over the whitened coordinates (no time "
-                    "split reaches their place): all · confirmed",
+                    "split reaches their place, or the split could fit only the term's own "
+                    "parameters): all · confirmed",
                     " · ".join(
                         str(n)
                         for n in (

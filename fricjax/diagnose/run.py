@@ -675,8 +675,11 @@ class Confirm:
     finding where the test parts never go) is judged by :class:`CrossValidation` instead.
     Where a check's training data cannot determine the model with the candidate (short
     records), only the candidate's own parameters are fitted there, the rest frozen at the
-    current fit (:meth:`HeldOut.frozen_gain`, and likewise for the cross-validation).
-    The checks (:attr:`judges`, in the order of :data:`HELDOUT_KEYS`) are built at the
+    current fit (:meth:`HeldOut.frozen_gain`, and likewise for the cross-validation); such
+    a split is reported but does not judge where a second recording is given
+    (:data:`SPLIT_DEFERS`) or, without one, where the cross-validation's folds
+    (:func:`cv_folds`) can refit every parameter (:data:`SPLIT_FROZEN`): that check judges
+    instead. The checks (:attr:`judges`, in the order of :data:`HELDOUT_KEYS`) are built at the
     first call, whose ``current`` model is the fitted base; the cross-validation when first
     needed, from the same base."""
 
