@@ -308,6 +308,14 @@ def _own_parts(res_e: EquationError, base: Array, nl: Array, layout: tuple, kapp
     return jax.vmap(one)(nl)
 
 
+def column_basis(cols: Float[np.ndarray, "M k"]) -> Float[np.ndarray, "M r"]:
+    """Orthonormal basis of ``cols``' span (QR, columns whose R diagonal falls below
+    1e-10 of its largest entry dropped: a term whose columns are off span J only in part)."""
+    q, rr = np.linalg.qr(cols)
+    ok = np.abs(np.diag(rr)) > 1e-10 * max(1.0, float(np.abs(rr).max()))
+    return q[:, ok]
+
+
 class Boxed(NamedTuple):
     """The base's linearised fit with its box (:func:`boxed_base`): ``q_free`` [M, r] an
     orthonormal basis of the whitened Jacobian's columns whose parameters may move,
@@ -356,9 +364,7 @@ def boxed_gains(boxed: Boxed, cols: Float[np.ndarray, "G M k"]) -> Float[np.ndar
     perp = cols - np.einsum("mj,gjk->gmk", q, np.einsum("mj,gmk->gjk", q, cols))
     out = np.zeros(cols.shape[0])
     for i in range(cols.shape[0]):
-        qi, rr = np.linalg.qr(perp[i])
-        ok = np.abs(np.diag(rr)) > 1e-10 * max(1.0, float(np.abs(rr).max()))
-        qi = qi[:, ok]
+        qi = column_basis(perp[i])
         out[i] = float(np.sum((qi.T @ boxed.r_free) ** 2))
     return out
 
@@ -395,9 +401,7 @@ def score_candidate(
     bases = []
     shifts = []
     for i in range(g):  # G ≲ 400 small QRs; the heavy part (columns) is one vmapped call
-        q, rr = np.linalg.qr(perp[i])
-        ok = np.abs(np.diag(rr)) > 1e-10 * max(1.0, float(np.abs(rr).max()))
-        q = q[:, ok]
+        q = column_basis(perp[i])
         bases.append(q)
         u = q.T @ r_perp
         shift = np.zeros(q.shape[1])

@@ -347,6 +347,18 @@ def test_a_short_record_s_check_pays_for_a_hidden_harmonic_and_not_for_noise(
     assert short_checks[False][1] < 0.02
 
 
+def _short_refit(after: tuple) -> SimpleNamespace:
+    """The harmonic of a short twin as forward selection hands it to ``confirm``."""
+    return SimpleNamespace(
+        effect="extra_harmonic",
+        model=after[0],
+        spec=after[1],
+        theta=after[2],
+        params=dict(SHORT_HARMONIC),
+        delta_bic=80.0,
+    )
+
+
 @pytest.fixture(scope="module")
 def short_repeats(paper_config: Config) -> dict[bool, Problem]:
     """A second ram of each short twin: same plant and motion, fresh noise."""
@@ -363,14 +375,7 @@ def test_a_second_recording_judges_a_short_record_s_finding_as_the_selection_fit
     for hidden, problem in short_problems.items():
         _, _, base, after = short_checks[hidden]
         confirm = Confirm(problem, 0.3, short_repeats[hidden], "auto")
-        refit = SimpleNamespace(
-            effect="extra_harmonic",
-            model=after[0],
-            spec=after[1],
-            theta=after[2],
-            params=dict(SHORT_HARMONIC),
-            delta_bic=80.0,
-        )
+        refit = _short_refit(after)
         ok, report = confirm(base, refit)
         second, split = confirm.judges
         assert second.determined(after[1]) and not split.determined(after[1])
@@ -410,14 +415,7 @@ def test_without_a_second_recording_a_short_record_is_judged_by_a_cross_validati
     for hidden, problem in short_problems.items():
         _, _, base, after = short_checks[hidden]
         confirm = Confirm(problem, 0.3, None, "auto")
-        refit = SimpleNamespace(
-            effect="extra_harmonic",
-            model=after[0],
-            spec=after[1],
-            theta=after[2],
-            params=dict(SHORT_HARMONIC),
-            delta_bic=80.0,
-        )
+        refit = _short_refit(after)
         ok, report = confirm(base, refit)
         (split,) = confirm.judges
         assert not split.determined(after[1])
