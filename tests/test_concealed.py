@@ -145,6 +145,40 @@ def test_same_seed_same_files(written: dict, paper_config: Config) -> None:
     assert other.recording.sha256() != written["manifests"][0]["cases"][1]["sha256"]
 
 
+def test_a_case_names_its_sources_and_a_run_whose_sources_change_stops(
+    written: dict, paper_config: Config, tmp_path: Path
+) -> None:
+    """The truth file carries the digest of the sources that generated it; the digest
+    follows any edit of a source (not of a compiled cache); a worker whose tree changed
+    since the run began writes nothing and says so in one line."""
+    _, truth = _truth(written, 0)
+    assert truth["sources"] == gen.source_digest()
+    pkg = tmp_path / "pkg"
+    (pkg / "__pycache__").mkdir(parents=True)
+    (pkg / "a.py").write_text("x = 1\n")
+    before = gen.source_digest([pkg])
+    (pkg / "__pycache__" / "a.cpython.pyc").write_bytes(b"\0")
+    assert gen.source_digest([pkg]) == before
+    (pkg / "a.py").write_text("x = 2\n")
+    assert gen.source_digest([pkg]) != before
+    out = tmp_path / "cases"
+    with pytest.raises(gen.FricjaxError, match="changed during the run") as err:
+        gen._generate_chunk(
+            [(0, written["specs"][1])],
+            1,
+            str(out),
+            SEED,
+            24e-6,
+            SUBSTEPS,
+            "output",
+            paper_config,
+            "0" * 16,
+            None,
+        )
+    assert "\n" not in str(err.value)
+    assert not out.exists() or not any(out.glob("*.h5"))
+
+
 def test_a_repeat_is_the_same_motion_with_new_noise(written: dict, paper_config: Config) -> None:
     """The second recording of a case (generate.write_repeat): x_repeat − x is the difference
     of two independent noise draws (std √2·σ_x, uncorrelated with the first draw), the

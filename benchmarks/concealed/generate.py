@@ -55,7 +55,9 @@ How each effect is made (catalogue term names and parameters):
 Files (atomic writes): ``OUT/CASE.h5`` (recording layout v1, no ``/truth``; CASE an opaque id
 so neither name nor file reveals the effect), ``OUT/truth/CASE.json`` (effect, parameters,
 target and achieved c, c_ee, rms(s)/σ_x, base parameters; diagnosis never reads it) and
-``OUT/manifest.json``. Deterministic: same seed and options → bit-identical recordings.
+``OUT/manifest.json``. Deterministic: same seed, options and sources → bit-identical
+recordings; each truth file names its sources (:func:`source_digest`) and commit, and a run
+whose sources change under it stops (:func:`check_sources`).
 
 Usage::
 
@@ -789,6 +791,9 @@ def make_case(
         "measure": measure,
         "base": base,
         "config": str(CONFIG.relative_to(ROOT)) if CONFIG.is_relative_to(ROOT) else str(CONFIG),
+        # which code made the record: a case is reproducible from these and its spec
+        "sources": source_digest(),
+        "git_commit": git_commit(),
     }
     if spec.effect == NULL:
         x_clean = x_base
@@ -988,6 +993,39 @@ def _progress_line(i: int, total: int, case: Case) -> str:
     )
 
 
+#: What a case's numbers depend on besides its spec and the seed: the package, this
+#: benchmark's modules and the configs.
+SOURCE_DIRS: tuple[Path, ...] = (
+    ROOT / "fricjax",
+    Path(__file__).resolve().parent,
+    ROOT / "configs",
+)
+
+
+def source_digest(dirs: Sequence[Path] = SOURCE_DIRS) -> str:
+    """SHA-256 (first 16 hex digits) over the ``.py`` and ``.toml`` files under ``dirs``,
+    their paths included: the source state that generates or diagnoses a case."""
+    h = hashlib.sha256()
+    for d in dirs:
+        for f in sorted(d.rglob("*")):
+            if f.suffix in (".py", ".toml") and f.is_file() and "__pycache__" not in f.parts:
+                h.update(f"{d.name}/{f.relative_to(d).as_posix()}".encode() + b"\0")
+                h.update(f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def check_sources(expected: str, what: str) -> None:
+    """Raise if the sources differ from ``expected`` (:func:`source_digest` when the run
+    began). Worker processes are spawned, so each imports the package from disk: an edit
+    made during a run would otherwise give cases of two versions under one commit."""
+    now = source_digest()
+    if now != expected:
+        raise FricjaxError(
+            f"{where('sources', what)}: fricjax, the benchmark or configs changed during the run "
+            f"(digest {expected} at the start, {now} now); run again on an unchanged tree"
+        )
+
+
 def _generate_chunk(
     indexed: Sequence[tuple[int, CaseSpec]],
     total: int,
@@ -997,15 +1035,20 @@ def _generate_chunk(
     substeps: int,
     measure: str,
     config: Config,
+    sources: str,
     progress: Callable[[str], None] | None,
 ) -> list[tuple[int, dict[str, Any]]]:
     """Write the cases ``indexed`` [(position in the list, spec)]; return (position, row):
-    all of :func:`generate` with one process, one worker's share with several."""
+    all of :func:`generate` with one process, one worker's share with several. ``sources``:
+    the run's :func:`source_digest`, checked before and after each case (package modules
+    imported lazily load during a case)."""
     rows = []
     for i, spec in indexed:
+        check_sources(sources, spec.effect)
         case = make_case(
             spec, seed, config, noise_std=noise_std, substeps=substeps, measure=measure
         )
+        check_sources(sources, spec.effect)
         rows.append((i, write_case(case, Path(out))))
         if progress is not None:
             progress(_progress_line(i, total, case))
@@ -1036,7 +1079,8 @@ def generate(
     out = Path(out)
     config = config or load_config(CONFIG)
     indexed = list(enumerate(specs))
-    common = (len(specs), str(out), seed, noise_std, substeps, measure, config)
+    sources = source_digest()
+    common = (len(specs), str(out), seed, noise_std, substeps, measure, config, sources)
     if jobs > 1 and len(specs) > 1:
         from concurrent.futures import ProcessPoolExecutor
         from multiprocessing import get_context
@@ -1063,6 +1107,19 @@ def generate(
     }
     write_json_atomic(out / "manifest.json", manifest)
     return manifest
+
+
+def git_commit() -> str | None:
+    """HEAD of the checkout the benchmark runs from (None outside a git checkout)."""
+    import subprocess
+
+    try:
+        done = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return done.stdout.strip()
 
 
 def parse_floats(text: str) -> tuple[float, ...]:

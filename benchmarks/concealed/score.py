@@ -36,7 +36,7 @@ import sys
 import time
 import traceback
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
@@ -49,6 +49,7 @@ import numpy as np
 
 from fricjax.diagnose.catalogue import CATALOGUE
 from fricjax.diagnose.run import NEAR_REST_CAVEAT, NEAR_REST_LAWS
+from fricjax.errors import FricjaxError
 
 ROOT = gen.ROOT
 DEFAULT_DATA = ROOT / "out" / "concealed"
@@ -185,11 +186,15 @@ def diagnose_rows(
     results: str,
     skip_existing: bool = True,
     repeat: bool = False,
+    sources: str = "",
 ) -> list[dict]:
     """Diagnose each case in this process; one JSON per case in ``results`` (cases with one
     already are skipped when ``skip_existing``; a case another live process has claimed is
     left to it). ``repeat``: the held-out check scores on the case's second recording
-    (``DATA/repeat/CASE.h5``, :func:`generate.write_repeat`). Never reads the truth files."""
+    (``DATA/repeat/CASE.h5``, :func:`generate.write_repeat`). ``sources``: the run's
+    :func:`generate.source_digest`, checked before and after each diagnosis (workers are
+    spawned and import the package from disk); each result records it. Never reads the
+    truth files."""
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.config import load_config
     from fricjax.data.recording import read_recording
@@ -206,6 +211,8 @@ def diagnose_rows(
         if skip_existing and result_path.is_file():  # e.g. another run finished it
             out.append(json.loads(result_path.read_text()))
             continue
+        if sources:
+            gen.check_sources(sources, row["case"])
         lock = _claim(result_path.with_suffix(".lock"))
         if lock is None:  # another live process is diagnosing it
             continue
@@ -255,6 +262,7 @@ def diagnose_rows(
                 "near_rest_fraction": diag.extra.get("near_rest_fraction"),
                 # the output-error stage, where it ran (None: equation error decided)
                 "simulation_test": js.get("simulation_test"),
+                "sources": sources or gen.source_digest(),
             }
         except Exception as err:  # one broken case must not lose the others
             result = {
@@ -264,6 +272,11 @@ def diagnose_rows(
                 "error": f"{type(err).__name__}: {err}",
                 "traceback": traceback.format_exc(limit=6),
             }
+        if sources:
+            try:  # a result of two source states is not written
+                gen.check_sources(sources, row["case"])
+            finally:
+                lock.unlink(missing_ok=True)
         gen.write_json_atomic(result_path, _plain(result))
         lock.unlink(missing_ok=True)
         print(
@@ -273,6 +286,13 @@ def diagnose_rows(
         )
         out.append(_plain(result))
     return out
+
+
+def _tally(digests: Iterable[str | None]) -> str:
+    """``digest: count`` per source state, most frequent first (None: not recorded, a
+    record or diagnosis from before they carried it)."""
+    counts = Counter(d or "not recorded" for d in digests)
+    return ", ".join(f"{d}: {k}" for d, k in counts.most_common()) or "–"
 
 
 def _claim(lock: Path) -> Path | None:
@@ -320,6 +340,7 @@ def run_all(
     reverse: bool = False,
     per_process: int = 0,
     repeat: bool = False,
+    sources: str = "",
 ) -> dict[str, dict]:
     """Diagnose every row (skipping those already in ``results`` when ``resume``).
 
@@ -346,7 +367,7 @@ def run_all(
             max_workers=max(jobs, 1), mp_context=get_context("spawn"), max_tasks_per_child=1
         ) as pool:
             futures = [
-                pool.submit(diagnose_rows, batch, str(data), str(results), resume, repeat)
+                pool.submit(diagnose_rows, batch, str(data), str(results), resume, repeat, sources)
                 for batch in batches
             ]
             for fut in futures:
@@ -354,14 +375,14 @@ def run_all(
                     done[res["case"]] = res
         return done
     if jobs <= 1 or len(todo) <= 1:
-        for res in diagnose_rows(todo, str(data), str(results), resume, repeat):
+        for res in diagnose_rows(todo, str(data), str(results), resume, repeat, sources):
             done[res["case"]] = res
         return done
     # round robin: every worker walks the list in run order, lengths stay together
     chunks: list[list[dict]] = [todo[i::jobs] for i in range(jobs)]
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
         futures = [
-            pool.submit(diagnose_rows, chunk, str(data), str(results), resume, repeat)
+            pool.submit(diagnose_rows, chunk, str(data), str(results), resume, repeat, sources)
             for chunk in chunks
             if chunk
         ]
@@ -748,7 +769,7 @@ def git_state() -> tuple[str, str]:
         except (OSError, subprocess.CalledProcessError):
             return "(unavailable)"
 
-    return run("rev-parse", "HEAD"), run("status", "--short", "fricjax", "configs")
+    return gen.git_commit() or "(unavailable)", run("status", "--short", "fricjax", "configs")
 
 
 def report(
@@ -1475,6 +1496,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     data = Path(args.data)
     load_start = machine()
     commit, status = git_state()
+    sources = gen.source_digest()
     rows = ensure_cases(data, specs, args.seed, args.measure, lambda m: print(m, flush=True))
     if args.repeat:
         for row in rows:
@@ -1493,16 +1515,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.resume
             else 0
         )
-        results = run_all(
-            rows,
-            data,
-            data / "diagnosis",
-            args.jobs,
-            args.resume,
-            reverse=args.reverse,
-            per_process=args.per_process,
-            repeat=args.repeat,
-        )
+        try:
+            results = run_all(
+                rows,
+                data,
+                data / "diagnosis",
+                args.jobs,
+                args.resume,
+                reverse=args.reverse,
+                per_process=args.per_process,
+                repeat=args.repeat,
+                sources=sources,
+            )
+        except FricjaxError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
         for row in rows:  # cases another run on the same folder finished meanwhile
             path = data / "diagnosis" / f"{row['case']}.json"
             if row["case"] not in results and path.is_file():
@@ -1573,6 +1600,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.report_only
             else "git status --short fricjax configs"
         ): "<br>".join(status.splitlines()) or "(clean)",
+        "sources of the records (generate.source_digest: cases)": _tally(
+            json.loads((data / row["truth"]).read_text()).get("sources") for row in rows
+        ),
+        "sources of the diagnoses (this run's: " + sources + ")": _tally(
+            r.get("sources") for r in results.values()
+        ),
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
     if args.note:
