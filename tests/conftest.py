@@ -30,3 +30,22 @@ def twin_problem(paper_config: Config, twin_path: Path):
     from fricjax.problem import build_problem
 
     return build_problem(read_recording(twin_path), paper_config)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _compilations_freed_after_slow_modules(request: pytest.FixtureRequest):
+    """After a module whose slow tests ran, drop jax's compiled programs.
+
+    Each slow check compiles dozens of whole-record programs (a diagnosis fits, scores and
+    refits a dozen models); ``pytest -m slow`` in one process ran out of XLA's code memory
+    in its fifth module (errors, then a segmentation fault while tracing), though every
+    module passes on its own. The fast suite selects no slow test, so it keeps sharing its
+    compilations across modules."""
+    yield
+    if any(
+        item.module is request.module and item.get_closest_marker("slow")
+        for item in request.session.items
+    ):
+        import jax
+
+        jax.clear_caches()
