@@ -9,6 +9,7 @@ import hashlib
 import importlib.util
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -17,7 +18,7 @@ import pytest
 
 import fricjax  # noqa: F401  (float64 on)
 from fricjax.config import Config
-from fricjax.data.recording import read_recording
+from fricjax.data.recording import Recording, read_recording
 from fricjax.data.twin import PAPER_MODEL
 from fricjax.diagnose.catalogue import ExtraHarmonic
 from fricjax.diagnose.locate import default_whitener, jacobian
@@ -250,6 +251,39 @@ def test_refit_measure_hits_target_and_agrees_with_linear_for_a_small_effect(
     assert truth["concealment_ee_refit"] == truth["concealment"]
     assert 0.85 * truth["concealment"] <= truth["concealment_ee"] <= 1.1 * truth["concealment"]
     assert case.case_id not in {spec.case_id(SEED), spec.case_id(SEED, "equation")}
+
+
+def test_refit_concealment_is_what_the_record_gives_with_its_own_rest_mask(
+    paper_config: Config,
+) -> None:
+    """The c a case records is c_refit_ee recomputed from its own noise-free record, with the
+    samples at rest that its noisy recording marks, for the floor too. A quadratic drag
+    moves the plant's stops (160 samples at rest at its level here): a floor kept from the
+    first trial magnitude's mask recorded c = 3.89 where the record gives 1.06."""
+    spec = gen.CaseSpec("quadratic_drag", LEVEL, DURATION, 0)
+    case = gen.make_case(spec, SEED, paper_config, substeps=SUBSTEPS, measure="refit")
+    truth, rec = case.truth, case.recording
+    _, rng_noise = gen.case_rngs(spec, SEED)
+    noise = rng_noise.normal(0.0, truth["noise_std_m"], truth["n"])
+    t = np.asarray(rec.t)
+    x_base, _ = gen.simulate_x(PAPER_MODEL, truth["base"], t, SUBSTEPS)
+    view = gen.EquationErrorView(
+        build_problem(rec, paper_config), truth["base"], truth["noise_std_m"]
+    )
+    rest = view.problem.rest
+    assert rest is not None and rest.sum() > 0.1 * rest.size  # the case exercises the rule
+
+    def marked(x: np.ndarray):
+        return replace(build_problem(Recording(t=t, x=x, mass=rec.mass), paper_config), rest=rest)
+
+    floor = np.asarray(marked(x_base).residual(view.theta0))
+    c, _ = gen.refit_concealment(
+        view,
+        marked(np.asarray(rec.x) - noise),
+        floor,
+        view.absorbing_step(spec.effect, truth["params"]),
+    )
+    assert truth["concealment"] == pytest.approx(c, rel=1e-6)
 
 
 def test_amplitude_search_stays_in_the_first_bracket_of_a_non_monotone_concealment() -> None:
