@@ -233,8 +233,15 @@ def test_equation_measure_hits_target(paper_config: Config) -> None:
     assert c == pytest.approx(LEVEL, rel=0.05)
 
 
+@pytest.fixture(scope="module")
+def refit_harmonic(paper_config: Config) -> gen.Case:
+    """An extra_harmonic case at c = 5 scaled to the refitted concealment."""
+    spec = gen.CaseSpec("extra_harmonic", LEVEL, DURATION, 0)
+    return gen.make_case(spec, SEED, paper_config, substeps=SUBSTEPS, measure="refit")
+
+
 def test_refit_measure_hits_target_and_agrees_with_linear_for_a_small_effect(
-    paper_config: Config,
+    refit_harmonic: gen.Case,
 ) -> None:
     """Scaled to the refitted concealment (the base's 26 parameters refitted by bounded
     least squares in the diagnosis' whitened metric, noise-free): the target is reached;
@@ -244,7 +251,7 @@ def test_refit_measure_hits_target_and_agrees_with_linear_for_a_small_effect(
     parameters, so the refit is not the linear projection (measured: c_ee 4.49 where the
     refit leaves 5.00)."""
     spec = gen.CaseSpec("extra_harmonic", LEVEL, DURATION, 0)
-    case = gen.make_case(spec, SEED, paper_config, substeps=SUBSTEPS, measure="refit")
+    case = refit_harmonic
     truth = case.truth
     assert truth["measure"] == "refit" and truth["reached"]
     assert truth["concealment"] == pytest.approx(LEVEL, rel=gen.C_RTOL)
@@ -284,6 +291,19 @@ def test_refit_concealment_is_what_the_record_gives_with_its_own_rest_mask(
         view.absorbing_step(spec.effect, truth["params"]),
     )
     assert truth["concealment"] == pytest.approx(c, rel=1e-6)
+
+
+def test_the_true_term_explains_all_of_a_harmonics_concealment(refit_harmonic: gen.Case) -> None:
+    """explained.py splits c into what base + the hidden term refitted still leave and what
+    the term explains. A harmonic's signature is the term's own, so the split must give it
+    all (measured: 5.00 of 5.00, 0.07 left), and c recomputed from the written record is
+    the one its truth file records."""
+    explained = _load("explained")
+    truth = refit_harmonic.truth
+    e = explained.explained_concealment(truth, refit_harmonic.recording)
+    assert e.c == pytest.approx(truth["concealment"], rel=1e-6)
+    assert e.c_left < 0.05 * e.c
+    assert e.c_explained**2 + e.c_left**2 == pytest.approx(e.c**2, rel=1e-9)
 
 
 def test_amplitude_search_stays_in_the_first_bracket_of_a_non_monotone_concealment() -> None:

@@ -412,24 +412,36 @@ def refit_concealment(
     ``jax.jacfwd``) from the better of θ₀ and ``θ₀ + start`` (the linear absorbing step,
     clipped into the box).
     """
+    return bounded_refit(view, problem_effect, floor, [view.theta0, view.theta0 + start])
+
+
+def bounded_refit(
+    view: EquationErrorView,
+    problem: Problem,
+    floor: Float[np.ndarray, " n"],
+    starts: Sequence[Float[np.ndarray, " d"]],
+) -> tuple[float, np.ndarray]:
+    """``min_{θ ∈ box} ‖W·(r(θ) − r_floor)‖/σ_x`` [1] and θ̂ [d] for ``problem``'s residual
+    ``r`` [n] in newtons (W, σ_x: ``view``'s; the box: ``problem``'s), by bounded least
+    squares from the best of ``starts`` (clipped into the box)."""
     from scipy.optimize import least_squares
 
     from fricjax.diagnose.locate import jacobian
 
-    lower, upper = problem_effect.spec.lower, problem_effect.spec.upper
+    lower, upper = problem.spec.lower, problem.spec.upper
     width = upper - lower
     inner_lo, inner_hi = lower + 1e-9 * width, upper - 1e-9 * width
 
     def whitened(theta: np.ndarray) -> np.ndarray:
-        return view.wh(np.asarray(problem_effect.residual(theta)) - floor) / view.sigma
+        return view.wh(np.asarray(problem.residual(theta)) - floor) / view.sigma
 
     def jac(theta: np.ndarray) -> np.ndarray:
-        return view.wh(jacobian(problem_effect, theta)) / view.sigma
+        return view.wh(jacobian(problem, theta)) / view.sigma
 
-    theta0 = np.clip(np.asarray(view.theta0, dtype=np.float64), inner_lo, inner_hi)
-    moved = np.clip(theta0 + start, inner_lo, inner_hi)
-    z0, zm = whitened(theta0), whitened(moved)
-    x0 = moved if float(zm @ zm) < float(z0 @ z0) else theta0
+    points = [np.clip(np.asarray(x, dtype=np.float64), inner_lo, inner_hi) for x in starts]
+    # the first of equal starts wins, as the refit concealment's θ₀ did before the step
+    sizes = [float(z @ z) for z in map(whitened, points)]
+    x0 = points[int(np.argmin(sizes))]
     sol = least_squares(
         whitened,
         x0,
