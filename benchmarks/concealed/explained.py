@@ -32,21 +32,18 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import generate as gen
-import numpy as np
+import score
 
-from fricjax.config import load_config
+from fricjax.config import Config, load_config
 from fricjax.data.recording import Recording, read_recording
-from fricjax.data.twin import PAPER_MODEL
-from fricjax.problem import build_problem
 
-# a case counts at its level when its achieved c is within [0.75, 4/3]× the target, as in
-# score.py; the same 0.75 splits "the true term explains the level" from "it does not"
-BAND = (0.75, 4.0 / 3.0)
+# the lower end of the scorer's level band also splits "the true term explains the level"
+# from "it does not"
+EXPLAINS = score.LEVEL_BAND[0]
 
 
 class Explained(NamedTuple):
@@ -57,31 +54,10 @@ class Explained(NamedTuple):
     c_explained: float  # √(c² − c_left²)
 
 
-def explained_concealment(truth: dict[str, Any], recording: Recording) -> Explained:
+def explained_concealment(truth: dict[str, Any], recording: Recording, config: Config) -> Explained:
     """:class:`Explained` of one generated case (``truth``: its truth file's contents;
-    ``recording``: its record as written)."""
-    config = load_config(gen.CONFIG)
-    spec = gen.CaseSpec(truth["effect"], truth["level"], truth["duration_s"], truth["rep"])
-    if spec.case_id(truth["seed"], truth["measure"]) != truth["case"]:
-        # the noise is regenerated from the spec; another spec would subtract other noise
-        raise ValueError(f"truth of {truth['case']}: its fields give another case id")
-    _, rng_noise = gen.case_rngs(spec, truth["seed"])
-    noise = rng_noise.normal(0.0, truth["noise_std_m"], truth["n"])
-    t = np.asarray(recording.t)
-    x_base, _ = gen.simulate_x(PAPER_MODEL, truth["base"], t, truth["substeps"])
-    view = gen.EquationErrorView(
-        build_problem(recording, config), truth["base"], truth["noise_std_m"]
-    )
-
-    def marked(x: np.ndarray):
-        # the samples at rest of the noisy recording, as the generator's floor takes them
-        rec = Recording(t=t, x=x, mass=recording.mass)
-        return replace(build_problem(rec, config), rest=view.problem.rest)
-
-    floor = np.asarray(marked(x_base).residual(view.theta0))
-    clean = marked(np.asarray(recording.x) - noise)
-    step = view.absorbing_step(truth["effect"], truth["params"])
-    c, theta_base = gen.refit_concealment(view, clean, floor, step)
+    ``recording``: its record as written; ``config``: the one it was generated with)."""
+    c, theta_base, view, clean, floor = gen.record_concealment(truth, recording, config)
     ext, theta_true = gen.with_true_term(clean, truth["effect"], truth["base"], truth["params"])
     # base + term nests the base (the term's amplitudes at their null values), so it is also
     # refitted from the base's own refit, and the better end counts: from the truth alone the
@@ -101,8 +77,7 @@ def explained_concealment(truth: dict[str, Any], recording: Recording) -> Explai
 
 
 def at_level(truth: dict[str, Any]) -> bool:
-    lo, hi = BAND
-    return truth["effect"] != gen.NULL and lo <= truth["concealment"] / truth["level"] <= hi
+    return truth["effect"] != gen.NULL and score.on_level(truth)
 
 
 def first_finding(data: Path, case: str) -> str | None:
@@ -150,7 +125,7 @@ def report(rows: Sequence[dict[str, Any]], data: Path) -> str:
                 for r in rows
                 if r["level"] == level
                 and r["first"] is not None
-                and (r["c_explained"] >= BAND[0] * level) == explains
+                and (r["c_explained"] >= EXPLAINS * level) == explains
             ]
             named = sum(r["first"] == r["effect"] for r in rs)
             cells.append(f"{named}/{len(rs)}" if rs else "–")
@@ -179,11 +154,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     truths = [t for t in truths if at_level(t) and (not wanted or t["case"] in wanted)]
     truths.sort(key=lambda t: (t["duration_s"], t["level"], t["effect"], t["case"]))
+    config = load_config(gen.CONFIG)
     rows = []
     for truth in truths:
         t0 = time.perf_counter()
         rec = read_recording(args.data / f"{truth['case']}.h5")
-        e = explained_concealment(truth, rec)
+        e = explained_concealment(truth, rec, config)
         rows.append(
             {
                 "case": truth["case"],

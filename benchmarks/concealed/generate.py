@@ -415,6 +415,44 @@ def refit_concealment(
     return bounded_refit(view, problem_effect, floor, [view.theta0, view.theta0 + start])
 
 
+class RecordConcealment(NamedTuple):
+    """A written case's refit concealment, recomputed from its record alone."""
+
+    c: float  # [1] c_refit_ee
+    theta: np.ndarray  # [26] the base refitted to the noise-free record
+    view: EquationErrorView  # at the true base, rest mask of the noisy recording
+    problem: Problem  # the noise-free record, samples at rest marked as in ``view``
+    floor: np.ndarray  # [n] N, the noise-free base record's residual at the truth
+
+
+def record_concealment(
+    truth: Mapping[str, Any], recording: Recording, config: Config
+) -> RecordConcealment:
+    """c_refit_ee of a written case (:func:`refit_concealment`) from its record alone: the
+    noise regenerated from the case's seed and subtracted, the base record simulated from
+    the truth, both with the samples at rest that the noisy recording marks. Equals the
+    truth file's ``concealment`` when the record is the one :func:`make_case` wrote."""
+    spec = CaseSpec(truth["effect"], truth["level"], truth["duration_s"], truth["rep"])
+    if spec.case_id(truth["seed"], truth["measure"]) != truth["case"]:
+        # the noise is regenerated from the spec; another spec would subtract other noise
+        raise ValueError(f"truth of {truth['case']}: its fields give another case id")
+    _, rng_noise = case_rngs(spec, truth["seed"])
+    noise = rng_noise.normal(0.0, truth["noise_std_m"], truth["n"])
+    t = np.asarray(recording.t)
+    x_base, _ = simulate_x(PAPER_MODEL, truth["base"], t, truth["substeps"])
+    view = EquationErrorView(build_problem(recording, config), truth["base"], truth["noise_std_m"])
+
+    def marked(x: np.ndarray) -> Problem:
+        rec = Recording(t=t, x=x, mass=recording.mass)
+        return replace(build_problem(rec, config), rest=view.problem.rest)
+
+    floor = np.asarray(marked(x_base).residual(view.theta0))
+    clean = marked(np.asarray(recording.x) - noise)
+    step = view.absorbing_step(truth["effect"], truth["params"])
+    c, theta = refit_concealment(view, clean, floor, step)
+    return RecordConcealment(c, theta, view, clean, floor)
+
+
 def bounded_refit(
     view: EquationErrorView,
     problem: Problem,
@@ -439,7 +477,7 @@ def bounded_refit(
         return view.wh(jacobian(problem, theta)) / view.sigma
 
     points = [np.clip(np.asarray(x, dtype=np.float64), inner_lo, inner_hi) for x in starts]
-    # the first of equal starts wins, as the refit concealment's θ₀ did before the step
+    # ties go to the earlier start (the refit concealment lists θ₀ before its step)
     sizes = [float(z @ z) for z in map(whitened, points)]
     x0 = points[int(np.argmin(sizes))]
     sol = least_squares(

@@ -86,6 +86,18 @@ AMPLITUDE_KEYS: dict[str, tuple[str, ...]] = {
 
 
 # -- running ---------------------------------------------------------------------------------
+# a case counts at its level when its achieved c is within this factor range of the target
+# (the secant may stop short when the signature is not linear in the amplitude or the
+# amplitude bound is hit)
+LEVEL_BAND = (0.75, 4.0 / 3.0)
+
+
+def on_level(truth: dict[str, Any]) -> bool:
+    """Whether a case with an effect reached its concealment level (:data:`LEVEL_BAND`)."""
+    lo, hi = LEVEL_BAND
+    return lo <= truth["concealment"] / truth["level"] <= hi
+
+
 def ensure_cases(
     data: Path, specs: Sequence[gen.CaseSpec], seed: int, measure: str, log: Any
 ) -> list[dict[str, Any]]:
@@ -426,9 +438,7 @@ def score_case(truth: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
         "absorbed": truth.get("absorbed_fraction"),
         "c_refit": truth.get("concealment_refit", 0.0),
         "c_ee_refit": truth.get("concealment_ee_refit"),
-        # on level: c within [0.75, 1.33]× the target (the secant may stop short when the
-        # signature is not linear in the amplitude or the amplitude bound is hit)
-        "on_level": effect == gen.NULL or 0.75 <= truth["concealment"] / truth["level"] <= 4 / 3,
+        "on_level": effect == gen.NULL or on_level(truth),
         "duration": truth["duration_s"],
         "first": first,
         "names": names,
