@@ -559,15 +559,26 @@ def _static_level(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
     return float(np.max(np.abs(jump)))
 
 
-def near_rest(problem: Problem, theta: Float[np.ndarray, " d"]) -> Float[np.ndarray, " n"] | None:
-    """Samples at or near rest, ``|v| < 4·σ_v`` (:func:`reversal_mask`) with σ̂_x from a
-    first whitening of the residual at ``theta`` (:func:`robust_sigma`), bool [n]; ``None``
-    when the model at ``theta`` has no static friction (nothing sticks)."""
+def rest_sigma(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
+    """σ̂_x [m] that :func:`near_rest` scales its band by: :func:`robust_sigma` of a first
+    whitening of the residual at ``theta`` (the sliding law on every sample)."""
+    first = make_whitener(problem, damping=linear_damping(problem, theta))
+    return robust_sigma(first, first(np.asarray(problem.residual(theta))))
+
+
+def near_rest(
+    problem: Problem,
+    theta: Float[np.ndarray, " d"],
+    kappa: float = 4.0,
+    sigma_x: float | None = None,
+) -> Float[np.ndarray, " n"] | None:
+    """Samples at or near rest, ``|v| < κ·σ_v`` (:func:`reversal_mask`) with σ̂_x
+    ``sigma_x`` [m], by default :func:`rest_sigma` at ``theta``, bool [n]; ``None`` when the
+    model at ``theta`` has no static friction (nothing sticks)."""
     if _static_level(problem, theta) == 0.0:
         return None
-    first = make_whitener(problem, damping=linear_damping(problem, theta))
-    sigma = robust_sigma(first, first(np.asarray(problem.residual(theta))))
-    return reversal_mask(problem, sigma)
+    sigma = rest_sigma(problem, theta) if sigma_x is None else sigma_x
+    return reversal_mask(problem, sigma, kappa=kappa)
 
 
 def default_whitener(

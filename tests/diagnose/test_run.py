@@ -11,10 +11,11 @@ import pytest
 
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH
-from fricjax.diagnose.locate import LocateReport, MapBin, default_whitener
+from fricjax.diagnose.locate import LocateReport, MapBin, default_whitener, rest_sigma
 from fricjax.diagnose.run import (
     NEAR_REST_CAVEAT,
     NEAR_REST_LAWS,
+    SECOND_RECORDING_KAPPA,
     SIMULATION_TERMS,
     DiagnoseSettings,
     _finding,
@@ -190,6 +191,26 @@ def test_a_held_out_split_keeps_each_part_s_rest_samples(
     # and the samples marked at rest are exactly the ones the whitener leaves out
     np.testing.assert_array_equal(default_whitener(test, theta).excluded, test.rest)
     assert replace(marked, rest=None).cost_fn is not None  # the grid cost path stays open
+
+
+def test_a_second_recording_is_held_at_rest_wherever_the_record_was(
+    sticky_records: tuple[list[Problem], np.ndarray, np.ndarray],
+) -> None:
+    """The held-out check on a second recording of the same motion scores the models
+    fitted on the record, whose sliding law the record never fitted where it was held at
+    rest. Marked by the record's own rule (κ = 4, its own σ̂_x: 142.9 and 65.1 µm for the
+    two draws, σ_x 24 µm) the second draw slides on 143 of the first's 565 samples at rest;
+    marked as ``diagnose`` marks a second recording (the larger σ̂_x, κ = 6) on none, either
+    way round."""
+    records, theta, _ = sticky_records
+    for rec, second in (records, records[::-1]):
+        held = with_rest(rec, theta).rest
+        sigma = max(rest_sigma(rec, theta), rest_sigma(second, theta))
+        marked = with_rest(second, theta, SECOND_RECORDING_KAPPA, sigma).rest
+        assert not np.any(held & ~marked)
+        assert marked.mean() < 0.75  # a test part is left
+    first_held = with_rest(records[0], theta).rest
+    assert np.sum(first_held & ~with_rest(records[1], theta).rest) > 100
 
 
 def test_the_simulation_terms_setting_picks_the_candidates_and_refuses_others() -> None:
