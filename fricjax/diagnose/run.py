@@ -860,7 +860,7 @@ def _figures(
 #: 181 on the concealed 1 s drift c193ac2dd67 (σ̂_x 38.6 and 31.9 µm); with the larger σ̂_x,
 #: 7 and 17 at κ = 4, 0 and 2 at 5, none at 6. On that drift the base and base + drift
 #: fitted on the record (truth start) scored 678 and 600 σ_x² on the second recording
-#: marked at κ = 4 (141 dof), 165 and 160 marked at κ = 6 with its own σ̂_x.
+#: marked at κ = 4 (141 dof), 165 and 162 marked by this rule (128 dof).
 SECOND_RECORDING_KAPPA = 6.0
 
 
@@ -896,6 +896,24 @@ def with_rest(
     return replace(problem, rest=rest)
 
 
+def with_rest_both(
+    problem: Problem, validation: Problem | None, theta: np.ndarray
+) -> tuple[Problem, Problem | None]:
+    """The record and its second recording (if any) with their samples at rest marked
+    (:func:`with_rest`): the record by its own σ̂_x at κ = 4, the second recording at
+    :data:`SECOND_RECORDING_KAPPA` with the larger of the two σ̂_x (both from the sliding law
+    on every sample, :func:`~fricjax.diagnose.locate.rest_sigma`), so that it is held at
+    rest wherever the record was."""
+    if validation is None:
+        return with_rest(problem, theta), None
+    sigma = rest_sigma(problem, theta)
+    wide = max(sigma, rest_sigma(validation, theta))
+    return (
+        with_rest(problem, theta, sigma_x=sigma),
+        with_rest(validation, theta, SECOND_RECORDING_KAPPA, wide),
+    )
+
+
 def _undecimated(problem: Problem | None) -> Problem | None:
     """The problem without residual decimation (``[preprocess].decimate``): the whitener
     selects the frequency band itself and needs the residual at every sample; decimation
@@ -918,11 +936,7 @@ def diagnose(
     problem, validation = _undecimated(problem), _undecimated(validation)
     identify_settings = identify_settings or IdentifySettings()
     run = identify(problem, identify_settings)
-    if validation is not None:
-        # both σ̂_x from the sliding law on every sample, as the record's own mask takes it
-        sigma = max(rest_sigma(problem, run.value), rest_sigma(validation, run.value))
-        validation = with_rest(validation, run.value, SECOND_RECORDING_KAPPA, sigma)
-    problem = with_rest(problem, run.value)
+    problem, validation = with_rest_both(problem, validation, run.value)
     # The first search fitted the sliding law on the samples at rest too; where the plant
     # sticks often its breakaway bias can hold the base in a poor minimum at the box's
     # edge (asymmetric friction on a 1 s record, 58 % of it near rest: excess whitened RSS

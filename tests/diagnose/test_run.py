@@ -11,11 +11,10 @@ import pytest
 
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH
-from fricjax.diagnose.locate import LocateReport, MapBin, default_whitener, rest_sigma
+from fricjax.diagnose.locate import LocateReport, MapBin, default_whitener
 from fricjax.diagnose.run import (
     NEAR_REST_CAVEAT,
     NEAR_REST_LAWS,
-    SECOND_RECORDING_KAPPA,
     SIMULATION_TERMS,
     DiagnoseSettings,
     _finding,
@@ -23,6 +22,7 @@ from fricjax.diagnose.run import (
     heldout_parts,
     untested_place,
     with_rest,
+    with_rest_both,
 )
 from fricjax.diagnose.simulation_test import LAWS, TERMS
 from fricjax.errors import FricjaxError
@@ -204,9 +204,9 @@ def test_a_second_recording_is_held_at_rest_wherever_the_record_was(
     way round."""
     records, theta, _ = sticky_records
     for rec, second in (records, records[::-1]):
-        held = with_rest(rec, theta).rest
-        sigma = max(rest_sigma(rec, theta), rest_sigma(second, theta))
-        marked = with_rest(second, theta, SECOND_RECORDING_KAPPA, sigma).rest
+        marked_rec, marked_second = with_rest_both(rec, second, theta)
+        held, marked = marked_rec.rest, marked_second.rest
+        np.testing.assert_array_equal(held, with_rest(rec, theta).rest)  # the record's own rule
         assert not np.any(held & ~marked)
         assert marked.mean() < 0.75  # a test part is left
     first_held = with_rest(records[0], theta).rest
