@@ -15,6 +15,7 @@ from fricjax.config import Config, load_config
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
+from fricjax.params import check_known
 from fricjax.problem import Problem, build_problem
 
 if TYPE_CHECKING:
@@ -153,6 +154,7 @@ def cost_at(
     _, _, problem = load(recording, config, mass=mass)
     if params is not None:
         named, source = read_params(params), str(params)
+        check_known(named, problem.spec.names, source)
     else:
         from fricjax.data.twin import read_truth
 

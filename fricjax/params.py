@@ -21,6 +21,17 @@ from fricjax.errors import FricjaxError, where
 Named = Mapping[str, Float[Array, "..."]]
 
 
+def check_known(named: Mapping[str, float], names: tuple[str, ...], source: str) -> None:
+    """Refuse, in one line naming ``source`` and the key, a parameter the model does not
+    take: a misspelt name would otherwise be dropped and its default used in silence."""
+    for key in named:
+        if key not in names:
+            raise FricjaxError(
+                f"{where(source, key)}: unknown parameter of the model (it takes: "
+                f"{', '.join(names)})"
+            )
+
+
 @dataclass(frozen=True)
 class Param:
     """One model parameter.

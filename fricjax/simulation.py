@@ -43,6 +43,7 @@ from fricjax.data.recording import Recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import atomic_path, write_text_atomic
 from fricjax.model.closed_loop import CascadePD
+from fricjax.params import check_known
 from fricjax.validate import _named, _problem, simulate_model
 
 __all__ = [
@@ -126,15 +127,6 @@ def signal_metrics(simulated: np.ndarray, recorded: np.ndarray, unit: str = "") 
     )
 
 
-def _check_params(params: Mapping[str, float], names: tuple[str, ...], source: str) -> None:
-    for key in params:
-        if key not in names:
-            raise FricjaxError(
-                f"{where(source, key)}: unknown parameter of the model (it takes: "
-                f"{', '.join(names)})"
-            )
-
-
 def simulate_against(
     rec: Recording,
     cfg: Config,
@@ -158,7 +150,7 @@ def simulate_against(
             "the reference position)"
         )
     problem = _problem(rec, cfg, params)
-    _check_params(params, problem.spec.names, source)
+    check_known(params, problem.spec.names, source)
     p = _named(problem, params, source)
     trim = problem.preprocess.trim if problem.preprocess is not None else 0
     m = problem.n

@@ -107,6 +107,19 @@ def test_user_mistakes_give_one_line_and_exit_2(args: list[str], needle: str) ->
     assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0]
 
 
+def test_a_misspelt_parameter_is_refused_not_dropped(tmp_path: Path) -> None:
+    # Dropped in silence, "Fcc" would leave Fc at its config init and the cost would be
+    # reported at parameters the user never gave.
+    params = tmp_path / "p.toml"
+    params.write_text("Fc = 400.0\nFcc = 3.0\n")
+    out = fricjax(
+        "cost", "data/paper_twin.h5", "--config", "configs/paper.toml", "--params", str(params)
+    )
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"{params}: Fcc: unknown parameter of the model" in lines[0]
+
+
 def test_nan_in_a_csv_is_named(tmp_path: Path) -> None:
     csv = tmp_path / "bad.csv"
     csv.write_text("t,x\n" + "\n".join(f"{k / 1000},{'nan' if k == 7 else k}" for k in range(40)))
