@@ -57,6 +57,8 @@ from fricjax.search.chains import (
 from fricjax.search.separable import Separable, separate
 
 SEPARABLE_TABLE = "separable_budget"
+# How an error names a value given on the command line instead of in the config file.
+CLI_SOURCE = "command line"
 SEARCH_KEYS = (
     "method",
     "chains",
@@ -176,25 +178,36 @@ class IdentifySettings:
                         f"{where(source, f'[search.{SEPARABLE_TABLE}].{key}')}: unknown key "
                         "(known: chains, refine_top and the [anneal] keys)"
                     )
-        for key, value in cli.items():
-            if key in SEARCH_KEYS:
-                search[key] = value
-            else:
-                anneal_table[key] = value
+        # The config's own [anneal] is checked before the command line's values join it, so
+        # that an error names where the bad value came from: the file, or the command line.
+        anneal = AnnealSettings.from_dict(anneal_table, source=source)
+        cli_anneal = {k: v for k, v in cli.items() if k not in SEARCH_KEYS}
+        if cli_anneal:
+            anneal = AnnealSettings.from_dict({**anneal_table, **cli_anneal}, source=CLI_SOURCE)
+        search.update({k: v for k, v in cli.items() if k in SEARCH_KEYS})
+
+        def blame(key: str) -> str:
+            return where(CLI_SOURCE, f"--{key}") if key in cli else where(source, f"[search].{key}")
+
         method = str(search.get("method", cls.method))
         if method not in METHODS:
             raise FricjaxError(
-                f"{where(source, '[search].method')}: unknown method {method!r} "
-                f"(known: {', '.join(METHODS)})"
+                f"{blame('method')}: unknown method {method!r} (known: {', '.join(METHODS)})"
             )
-        try:
-            chains = int(search.get("chains", cls.chains))
-            seed = int(search.get("seed", cls.seed))
-            top = int(search.get("refine_top", cls.refine_top))
-        except (TypeError, ValueError) as err:
-            raise FricjaxError(f"{where(source, '[search]')}: not an integer ({err})") from None
-        if chains < 1 or top < 1:
-            raise FricjaxError(f"{where(source, '[search].chains')}: must be >= 1")
+        ints = {}
+        for key, default in (
+            ("chains", cls.chains),
+            ("seed", cls.seed),
+            ("refine_top", cls.refine_top),
+        ):
+            try:
+                ints[key] = int(search.get(key, default))
+            except (TypeError, ValueError):
+                raise FricjaxError(f"{blame(key)}: not an integer ({search.get(key)!r})") from None
+        for key in ("chains", "refine_top"):
+            if ints[key] < 1:
+                raise FricjaxError(f"{blame(key)}: must be >= 1, got {ints[key]}")
+        chains, seed, top = ints["chains"], ints["seed"], ints["refine_top"]
         objective = search.get("objective", cls.objective)
         if objective not in OBJECTIVES:
             raise FricjaxError(
@@ -208,7 +221,7 @@ class IdentifySettings:
             refine_top=top,
             refine=bool(search.get("refine", True)),
             separable=bool(separable),
-            anneal=AnnealSettings.from_dict(anneal_table, source=source),
+            anneal=anneal,
             refiner=RefineSettings.from_dict(dict(tables.get("refine", {})), source=source),
             objective=str(objective),
             output_error=OutputErrorSettings.from_dict(

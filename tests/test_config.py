@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -87,3 +88,26 @@ def test_output_error_table_reaches_identify_settings(tmp_path):
         IdentifySettings.from_tables(
             {**cfg.tables, "output_error": {"segment_s": -1.0}}, source=cfg.source
         )
+
+
+def test_a_bad_setting_is_blamed_on_where_it_came_from():
+    from fricjax.identify import IdentifySettings
+
+    tables = {"search": {"chains": 4}, "anneal": {"alpha": 0.9}}
+    cases = [
+        ({"chains": 0}, "command line: --chains: must be >= 1, got 0"),
+        ({"method": "tabu"}, "command line: --method: unknown method 'tabu'"),
+        ({"alpha": 1.5}, "command line: alpha: must be in (0, 1), got 1.5"),
+    ]
+    for overrides, message in cases:
+        with pytest.raises(FricjaxError, match=re.escape(message)):
+            IdentifySettings.from_tables(tables, source="c.toml", overrides=overrides)
+    bad_chains = {"search": {"chains": 0}}
+    with pytest.raises(FricjaxError, match=re.escape("c.toml: [search].chains: must be >= 1")):
+        IdentifySettings.from_tables(bad_chains, source="c.toml", overrides={"alpha": 0.5})
+    bad_alpha = {"anneal": {"alpha": 1.5}}
+    with pytest.raises(FricjaxError, match=re.escape("c.toml: alpha: must be in (0, 1)")):
+        IdentifySettings.from_tables(bad_alpha, source="c.toml", overrides={"chains": 2})
+    # A valid command-line value over a valid file value wins.
+    s = IdentifySettings.from_tables(tables, source="c.toml", overrides={"chains": 2, "alpha": 0.5})
+    assert s.chains == 2 and s.anneal.alpha == 0.5
