@@ -497,7 +497,9 @@ def bench_throughput(
 def main() -> None:
     """Entry point: run the app, turning user mistakes into one line and exit status 2."""
     try:
-        app(standalone_mode=False)
+        # Outside standalone mode, typer turns Ctrl-C (and any ctx.exit(n)) into a returned
+        # exit code instead of raising: dropped, an interrupted run would exit 0.
+        code = app(standalone_mode=False)
     except FricjaxError as err:
         typer.echo(f"error: {err}", err=True)
         sys.exit(2)
@@ -513,6 +515,10 @@ def main() -> None:
         if isinstance(err, click.exceptions.Abort):
             sys.exit(130)
         raise
+    if isinstance(code, int) and code != 0:
+        if code == 130:
+            typer.echo("interrupted", err=True)
+        sys.exit(code)
 
 
 if __name__ == "__main__":

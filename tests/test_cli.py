@@ -120,6 +120,22 @@ def test_a_misspelt_parameter_is_refused_not_dropped(tmp_path: Path) -> None:
     assert len(lines) == 1 and f"{params}: Fcc: unknown parameter of the model" in lines[0]
 
 
+def test_ctrl_c_exits_130_not_0(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    # A script that runs diagnoses in a loop must see an interrupted one as failed.
+    import fricjax.api
+    from fricjax.cli import main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fricjax.api, "diagnose_recording", interrupted)
+    monkeypatch.setattr(sys, "argv", ["fricjax", "diagnose", "data/paper_twin.h5"])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    assert exc.value.code == 130
+    assert capsys.readouterr().err.strip() == "interrupted"
+
+
 def test_nan_in_a_csv_is_named(tmp_path: Path) -> None:
     csv = tmp_path / "bad.csv"
     csv.write_text("t,x\n" + "\n".join(f"{k / 1000},{'nan' if k == 7 else k}" for k in range(40)))
