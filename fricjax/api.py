@@ -209,8 +209,8 @@ def identify_recording(
 ) -> tuple[Any, Path]:
     """``fricjax identify``: identify, then write the results file (atomic).
 
-    Ctrl-C during the search stops it cleanly: what was found so far is still refined
-    no further, qualified and written.
+    Ctrl-C during the search or the refiner stops it cleanly: the search's best so far
+    is refined no further, qualified and written (``interrupted`` set, ``refined`` not).
     """
     from fricjax.identify import IdentifySettings, identify
     from fricjax.io.results import ResultsFile, provenance, write_results

@@ -261,8 +261,15 @@ def identify(
         search = _separable_search(sep, settings, on_level)
     best_x, cost_search = np.asarray(search.best_x), float(search.best_cost)
     best_cost = cost_search
-    if settings.refine and not search.interrupted:
-        best_x, best_cost = _polish(problem, search, settings, polish)
+    interrupted, refined = bool(search.interrupted), False
+    if settings.refine and not interrupted:
+        # Ctrl-C while the refiner runs keeps the search's best, unrefined, as Ctrl-C
+        # during the search does: the user asked to stop, not to lose the annealing.
+        try:
+            best_x, best_cost = _polish(problem, search, settings, polish)
+            refined = True
+        except KeyboardInterrupt:
+            interrupted = True
     if polish is not None:
         polish.cancel()  # not needed (interrupted): do not wait for it
     wall = time.perf_counter() - start
@@ -303,8 +310,8 @@ def identify(
             "steps_per_level": settings.anneal.steps_per_level,
             "levels": search.levels_run,
             "n_evals": int(search.traces.n_evals[-1]) if search.levels_run else 0,
-            "interrupted": bool(search.interrupted),
-            "refined": bool(settings.refine and not search.interrupted),
+            "interrupted": interrupted,
+            "refined": refined,
             "wall_time": wall,
             "t0": float(search.t0),
             "n_devices": search.n_devices,
@@ -314,7 +321,7 @@ def identify(
             "search_space": f"separable ({sep.describe()})" if sep is not None else f"full ({d}-D)",
         },
     )
-    if settings.objective == "simulation" and not search.interrupted:
+    if settings.objective == "simulation" and not interrupted:
         run = _output_error_polish(problem, run, settings.output_error, start)
     return run
 

@@ -68,6 +68,30 @@ def test_same_seed_same_result_different_seed_different_chains(
     assert np.all(a.chain_x <= twin_problem.spec.upper)
 
 
+def test_ctrl_c_in_the_refiner_keeps_the_search_best(
+    twin_problem: Problem, paper_settings: IdentifySettings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import fricjax.identify
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    small = IdentifySettings(
+        method="csaa",
+        chains=8,
+        seed=3,
+        anneal=paper_settings.anneal.__class__(steps_per_level=5, max_levels=20),
+    )
+    monkeypatch.setattr(fricjax.identify, "_polish", interrupted)
+    run = identify(twin_problem, small)
+    assert run.attrs["interrupted"] and not run.attrs["refined"]
+    assert run.cost == run.cost_search == float(np.min(run.chain_cost))
+    np.testing.assert_array_equal(run.value, run.chain_x[np.argmin(run.chain_cost)])
+    from fricjax.report.show import run_summary
+
+    assert "not refined" in run_summary(run)
+
+
 @pytest.mark.parametrize("method", ["dsaa", "rdsa"])
 def test_other_methods_run_end_to_end(
     twin_problem: Problem, paper_settings: IdentifySettings, method: str, tmp_path: Path

@@ -51,7 +51,10 @@ def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
         ]
     return [
         ("cost after search [N²]", fmt(run.cost_search, 7)),
-        ("cost after refine [N²]", fmt(run.cost, 7)),
+        (
+            "cost after refine [N²]",
+            fmt(run.cost, 7) if a.get("refined", True) else "not refined",
+        ),
         ("EMS [N²] (seed Table 4)", fmt(run.ems, 7)),
     ]
 
