@@ -332,7 +332,7 @@ def diagnose_recording(
     """
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
-    from fricjax.identify import IdentifySettings
+    from fricjax.identify import CLI_SOURCE, IdentifySettings
 
     _, cfg, problem = load(recording, config, mass=mass)
     # the base fit runs once per diagnosis: compile for compile speed (see identify_recording)
@@ -340,8 +340,13 @@ def diagnose_recording(
         IdentifySettings.from_tables(cfg.tables, source=cfg.source), fast_compile=True
     )
     table = dict(cfg.table("diagnose"))
-    table.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    # the file's table is checked alone first, so an error names where the bad value
+    # came from: the file, or the command line
     settings = DiagnoseSettings.from_dict(table, source=cfg.source)
+    cli = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if cli:
+        DiagnoseSettings.from_dict(cli, source=CLI_SOURCE, flags=True)
+        settings = DiagnoseSettings.from_dict({**table, **cli}, source=cfg.source)
     val = None
     if validation is not None:
         _, _, val = load(validation, cfg, mass=mass)

@@ -114,32 +114,47 @@ class DiagnoseSettings:
     simulation_terms: str = "laws"
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], source: str = "config") -> DiagnoseSettings:
+    def from_dict(
+        cls, d: dict[str, Any], source: str = "config", *, flags: bool = False
+    ) -> DiagnoseSettings:
+        """Settings from a ``[diagnose]`` table, each key's type and range checked: a
+        mistake is one :class:`FricjaxError` line naming ``source`` and the key (as its
+        command-line flag where ``flags``)."""
         from fricjax.errors import FricjaxError, where
 
-        known = set(cls.__dataclass_fields__)
-        for key in d:
-            if key not in known:
+        # key: (type, valid?, what a valid value is)
+        rules: dict[str, tuple[type, Any, str]] = {
+            "alpha": (float, lambda v: 0 < v < 1, "in (0, 1)"),
+            "min_delta_bic": (float, lambda v: 0 <= v < math.inf, ">= 0 and finite"),
+            "max_terms": (int, lambda v: v >= 1, ">= 1"),
+            "n_mc": (int, lambda v: v >= 1, ">= 1"),
+            "heldout": (float, lambda v: 0 < v < 0.9, "in (0, 0.9)"),
+            "seed": (int, lambda v: True, "an integer"),
+            "n_bins": (int, lambda v: v >= 2, ">= 2"),
+            "noise": (str, lambda v: v in NOISE_MODELS, f"one of {', '.join(NOISE_MODELS)}"),
+            "simulation_test": (bool, lambda v: True, "true or false"),
+            "simulation_terms": (
+                str,
+                lambda v: v in SIMULATION_TERMS,
+                f"one of {', '.join(SIMULATION_TERMS)}",
+            ),
+        }
+        values: dict[str, Any] = {}
+        for key, value in d.items():
+            label = f"--{key.replace('_', '-')}" if flags else f"[diagnose].{key}"
+            if key not in rules:
                 raise FricjaxError(
-                    f"{where(source, f'[diagnose].{key}')}: unknown key "
-                    f"(known: {', '.join(sorted(known))})"
+                    f"{where(source, label)}: unknown key (known: {', '.join(sorted(rules))})"
                 )
-        out = cls(**d)
-        if not 0 < out.alpha < 1 or not 0 < out.heldout < 0.9:
-            raise FricjaxError(
-                f"{where(source, '[diagnose]')}: alpha and heldout must be in (0, 1)"
-            )
-        if out.simulation_terms not in SIMULATION_TERMS:
-            raise FricjaxError(
-                f"{where(source, '[diagnose].simulation_terms')}: unknown value "
-                f"{out.simulation_terms!r} (valid: {', '.join(SIMULATION_TERMS)})"
-            )
-        if out.noise not in NOISE_MODELS:
-            raise FricjaxError(
-                f"{where(source, '[diagnose].noise')}: unknown noise model {out.noise!r} "
-                f"(valid: {', '.join(NOISE_MODELS)})"
-            )
-        return out
+            kind, valid, what = rules[key]
+            # bool is an int, but `max_terms = true` is a mistake, not 1
+            typed = isinstance(value, kind) and (kind is bool or not isinstance(value, bool))
+            if kind is float and isinstance(value, int) and not isinstance(value, bool):
+                value, typed = float(value), True
+            if not typed or not valid(value):
+                raise FricjaxError(f"{where(source, label)}: must be {what}, got {value!r}")
+            values[key] = value
+        return cls(**values)
 
 
 @dataclass

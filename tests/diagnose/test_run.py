@@ -223,3 +223,22 @@ def test_the_simulation_terms_setting_picks_the_candidates_and_refuses_others() 
     msg = str(err.value)
     assert "c.toml" in msg and "simulation_terms" in msg and "'every'" in msg
     assert "\n" not in msg
+
+
+def test_diagnose_settings_refuse_a_wrong_type_or_range_in_one_line() -> None:
+    cases = [
+        ({"alpha": "0.01"}, "c.toml: [diagnose].alpha: must be in (0, 1), got '0.01'"),
+        ({"alpha": 1.0}, "c.toml: [diagnose].alpha: must be in (0, 1), got 1.0"),
+        ({"heldout": 0.95}, "c.toml: [diagnose].heldout: must be in (0, 0.9), got 0.95"),
+        ({"max_terms": True}, "c.toml: [diagnose].max_terms: must be >= 1, got True"),
+        ({"n_mc": 0}, "c.toml: [diagnose].n_mc: must be >= 1, got 0"),
+        ({"simulation_test": 1}, "c.toml: [diagnose].simulation_test: must be true or false"),
+    ]
+    for table, message in cases:
+        with pytest.raises(FricjaxError) as err:
+            DiagnoseSettings.from_dict(table, source="c.toml")
+        assert str(err.value).startswith(message) and "\n" not in str(err.value)
+    with pytest.raises(FricjaxError, match=r"^command line: --max-terms: must be >= 1, got 0$"):
+        DiagnoseSettings.from_dict({"max_terms": 0}, source="command line", flags=True)
+    # an integer where a float is meant is the same number
+    assert DiagnoseSettings.from_dict({"min_delta_bic": 6}).min_delta_bic == 6.0
