@@ -1031,6 +1031,7 @@ def diagnose(
             alpha=settings.alpha,
             min_delta_bic=settings.min_delta_bic,
             fraction=settings.heldout,
+            validation=validation,
         )
         if sim.chosen is not None:
             sel = _with_law(problem, sel, sim.chosen)
@@ -1136,9 +1137,14 @@ def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dic
             "runner_up": runner[0].effect if runner else "",
             "runner_up_delta_bic": runner[0].delta_bic if runner else float("nan"),
         },
-        **{k: v for k, v in sim.heldout.items() if k == "heldout_improvement"},
-        "heldout_metric": f"output error on the {sim.heldout.get('heldout_part', 'last')} "
-        "part of the record",
+        **{
+            k: v
+            for k, v in sim.heldout.items()
+            if k in ("heldout_improvement", "heldout_split_improvement", "heldout_split_untestable")
+        },
+        "heldout_metric": "output error on the second recording"
+        if sim.heldout.get("heldout_part") == "second recording"
+        else f"output error on the {sim.heldout.get('heldout_part', 'last')} part of the record",
         "heldout_confirmed": True,
     }
     return out

@@ -16,8 +16,10 @@ from fricjax.diagnose.run import _law_finding
 from fricjax.diagnose.simulation_test import (
     LAWS,
     SCREEN_P,
+    SEGMENT_S,
     heldout_cut,
     output_error_score,
+    second_recording_gain,
     simulation_test,
 )
 from fricjax.output_error import OutputErrorSettings, fit_output_error, noise_scale
@@ -37,11 +39,19 @@ def outcomes(paper_config: Config) -> dict[str, Any]:
 
     null = problem(PAPER_MODEL, PAPER_TRUTH)
     drop = problem(PAPER_MODEL.with_terms([cat.GaussianStribeck()]), {**PAPER_TRUTH, **DROP})
+    # a second recording of the drop's plant (new noise), base model as the diagnosis has it
+    again, _ = paper_twin(
+        duration=1.0,
+        seed=6,
+        model=PAPER_MODEL.with_terms([cat.GaussianStribeck()]),
+        truth={**PAPER_TRUTH, **DROP},
+    )
     # the base's own values as the start (the diagnosis starts from its equation-error fit)
     return {
         "null": simulation_test(null, dict(PAPER_TRUTH), effects=TESTED),
         "drop": simulation_test(drop, dict(PAPER_TRUTH), effects=TESTED),
         "drop_problem": drop,
+        "drop_again": build_problem(again, paper_config),
     }
 
 
@@ -77,6 +87,17 @@ def test_a_stribeck_drop_is_named_by_simulation_and_pays_on_held_out_data(
     assert lo <= DROP["stribeck_vst"] <= hi
     assert finding["heldout_improvement"] == sim.heldout["heldout_improvement"]
     assert np.isfinite(finding["delta_bic"]) and finding["p_value"] == by["stribeck"].p_value
+
+
+@pytest.mark.slow
+def test_a_second_recording_judges_the_law_by_its_own_motion(outcomes: dict[str, Any]) -> None:
+    sim = outcomes["drop"]
+    settings = OutputErrorSettings(segment_s=SEGMENT_S)
+    # the drop fitted on the record pays on a second recording of the same plant, every
+    # sample of which is new noise (the split's test part is the record's own last 30 %)
+    same = second_recording_gain(outcomes["drop_again"], sim.base, sim.chosen, settings)
+    assert same["heldout_part"] == "second recording" and same["heldout_improvement"] > 0.2
+    assert same["heldout_cost_term"] < same["heldout_cost_base"]
 
 
 def test_the_held_out_part_is_one_that_reaches_where_the_term_acts(twin_problem: Any) -> None:
