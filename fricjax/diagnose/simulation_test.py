@@ -319,8 +319,14 @@ def _held_test_cost(
     """Output-error cost on ``test`` of the model fitted on ``train`` from ``start``, its
     parameters fixed on ``test`` (only the segment states fitted there)."""
     fitted = fit_output_error(train, start, settings)
-    fixed = test.spec.with_fixed({k: fitted.params[k] for k in test.spec.free_names})
-    return fit_output_error(replace(test, spec=fixed), fitted.params, settings).cost
+    return _fixed_cost(test, dict(fitted.params), settings)
+
+
+def _fixed_cost(test: Problem, params: dict[str, float], settings: OutputErrorSettings) -> float:
+    """Output-error cost on ``test`` of the model at ``params``, every parameter fixed:
+    only the segment states are fitted (a held-out simulation, not a refit)."""
+    fixed = test.spec.with_fixed({k: params[k] for k in test.spec.free_names})
+    return fit_output_error(replace(test, spec=fixed), params, settings).cost
 
 
 def heldout_cut(
@@ -395,11 +401,11 @@ def second_recording_gain(
     from fricjax.diagnose.run import with_model
 
     settings = settings._replace(x_scale=base.x_scale)
-    costs = []
-    for model_pb, fit in ((validation, base), (law.problem, law.fit)):
-        pb = replace(with_model(validation, model_pb.model, model_pb.spec), rest=None)
-        fixed = pb.spec.with_fixed({k: fit.params[k] for k in pb.spec.free_names})
-        costs.append(fit_output_error(replace(pb, spec=fixed), dict(fit.params), settings).cost)
+    term = with_model(validation, law.problem.model, law.problem.spec)
+    costs = [
+        _fixed_cost(replace(pb, rest=None), dict(fit.params), settings)
+        for pb, fit in ((validation, base), (term, law.fit))
+    ]
     return {
         "heldout_improvement": float(1 - costs[1] / costs[0]),
         "heldout_cost_base": float(costs[0]),
