@@ -18,6 +18,7 @@ from fricjax.diagnose.simulation_test import (
     SCREEN_P,
     SEGMENT_S,
     heldout_cut,
+    judging_gains,
     output_error_score,
     second_recording_gain,
     simulation_test,
@@ -98,6 +99,21 @@ def test_a_second_recording_judges_the_law_by_its_own_motion(outcomes: dict[str,
     same = second_recording_gain(outcomes["drop_again"], sim.base, sim.chosen, settings)
     assert same["heldout_part"] == "second recording" and same["heldout_improvement"] > 0.2
     assert same["heldout_cost_term"] < same["heldout_cost_base"]
+
+
+def test_a_law_must_gain_in_every_check_that_reaches_it() -> None:
+    nan = float("nan")
+    # no second recording: the split alone judges; a place it never reaches refuses the law
+    assert judging_gains({"heldout_improvement": 0.2}) == [0.2]
+    untested = judging_gains({"heldout_improvement": nan, "heldout_untestable": "never reaches"})
+    assert not all(g > 0 for g in untested)
+    # with one: a law that reproduces the second ram but loses on the record's own last
+    # part (a Stribeck term standing in for a presliding lag, concealed benchmark) is refused
+    both = {"heldout_improvement": 0.306, "heldout_split_improvement": -1.57}
+    assert judging_gains(both) == [0.306, -1.57] and not all(g > 0 for g in judging_gains(both))
+    # where the split reaches no place, the second recording judges alone
+    alone = both | {"heldout_split_improvement": nan, "heldout_split_untestable": "never"}
+    assert judging_gains(alone) == [0.306]
 
 
 def test_the_held_out_part_is_one_that_reaches_where_the_term_acts(twin_problem: Any) -> None:
