@@ -241,6 +241,9 @@ class LawFit:
     params: dict[str, float]  # the term's own parameters (SI units)
     cost_base: float  # E_base the ratio is taken against [σ_x²]: the lower of the two base fits
     rebased: bool = True  # False: judged against the base's first fit only (law_fit's bars)
+    # the base fit whose cost is ``cost_base``; the held-out checks start from it (None:
+    # the test's own base fit)
+    base_fit: OutputErrorFit | None = None
 
 
 @dataclass
@@ -294,7 +297,7 @@ def law_fit(
     ext = candidate(effect).extend_problem(problem, nonlinear)
     states = (base.states_x, base.states_v)
     fit = fit_output_error(ext, dict(base.params), settings, states)
-    e_base = base.cost
+    e_base, best = base.cost, base
     lr, p, dbic, k = _judge(problem, ext, fit, e_base)
     rebased = bars is None or (p < bars[0] and dbic > bars[1])
     if rebased:
@@ -302,7 +305,8 @@ def law_fit(
         # against the base refitted from where the term's fit ended, so that it measures
         # what the term explains and not what the longer descent found
         again = fit_output_error(problem, dict(fit.params), settings, (fit.states_x, fit.states_v))
-        e_base = min(base.cost, again.cost)
+        best = again if again.cost < base.cost else base
+        e_base = best.cost
         lr, p, dbic, k = _judge(problem, ext, fit, e_base)
     return LawFit(
         effect=effect,
@@ -315,6 +319,7 @@ def law_fit(
         params={q: float(v) for q, v in fit.params.items() if q not in problem.spec},
         cost_base=float(e_base),
         rebased=rebased,
+        base_fit=best,
     )
 
 
@@ -369,9 +374,10 @@ def heldout_gain(
     settings: OutputErrorSettings,
 ) -> dict[str, Any]:
     """The held-out check in output error (module docstring) on the part chosen by
-    :func:`heldout_cut`: ``heldout_improvement`` = ``1 − E_term,test / E_base,test``.
-    Where no part can judge the term, ``heldout_untestable`` says why and the gain is NaN:
-    the term is not named on this record."""
+    :func:`heldout_cut`: ``heldout_improvement`` = ``1 − E_term,test / E_base,test``, the
+    base started from the fit its LR was taken against (``law.base_fit``; ``base`` where
+    that is unset). Where no part can judge the term, ``heldout_untestable`` says why and
+    the gain is NaN: the term is not named on this record."""
     from fricjax.diagnose.run import record_part
 
     cut = heldout_cut(problem, candidate(law.effect).location(law.params, problem), fraction)
@@ -381,7 +387,7 @@ def heldout_gain(
     # the noise scale of the whole record, so that both parts share one unit
     settings = settings._replace(x_scale=base.x_scale)
     costs = []
-    for pb, fit in ((problem, base), (law.problem, law.fit)):
+    for pb, fit in ((problem, law.base_fit or base), (law.problem, law.fit)):
         pb = replace(pb, rest=None)
         train = record_part(pb, train_sl.start, train_sl.stop)
         test = record_part(pb, test_sl.start, test_sl.stop)
@@ -399,7 +405,9 @@ def second_recording_gain(
 ) -> dict[str, Any]:
     """The held-out check on a second recording of the same plant (``--validation``): base
     and base + term, each at the parameters fitted on the whole record, simulated over the
-    second recording (only its segment states fitted there);
+    second recording (only its segment states fitted there), the base at the fit its LR was
+    taken against (``law.base_fit``; ``base`` where that is unset: a base stopped short of
+    its minimum would pass any term that completes its descent for a gain);
     ``heldout_improvement`` = ``1 − E_term,2nd / E_base,2nd``, in the record's noise unit.
     No part of the record is set aside, so the gain is not the base's extrapolation into a
     place the fit never saw, wherever the term acts."""
@@ -409,7 +417,7 @@ def second_recording_gain(
     term = with_model(validation, law.problem.model, law.problem.spec)
     costs = [
         _fixed_cost(replace(pb, rest=None), dict(fit.params), settings)
-        for pb, fit in ((validation, base), (term, law.fit))
+        for pb, fit in ((validation, law.base_fit or base), (term, law.fit))
     ]
     return {
         "heldout_improvement": float(1 - costs[1] / costs[0]),

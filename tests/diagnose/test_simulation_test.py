@@ -4,12 +4,14 @@ on held-out data; on the same plant without it no candidate is significant."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
 
 import fricjax.diagnose.catalogue as cat
+import fricjax.diagnose.simulation_test as simulation_test_module
 from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.run import _law_finding
@@ -17,13 +19,20 @@ from fricjax.diagnose.simulation_test import (
     LAWS,
     SCREEN_P,
     SEGMENT_S,
+    LawFit,
     heldout_cut,
+    heldout_gain,
     judging_gains,
     output_error_score,
     second_recording_gain,
     simulation_test,
 )
-from fricjax.output_error import OutputErrorSettings, fit_output_error, noise_scale
+from fricjax.output_error import (
+    OutputErrorFit,
+    OutputErrorSettings,
+    fit_output_error,
+    noise_scale,
+)
 from fricjax.problem import build_problem
 
 # [N], [m/s]. The base's own Stribeck curve (Fs − Fc, vs) absorbs a drop of a few hundred
@@ -114,6 +123,47 @@ def test_a_law_must_gain_in_every_check_that_reaches_it() -> None:
     # where the split reaches no place, the second recording judges alone
     alone = both | {"heldout_split_improvement": nan, "heldout_split_untestable": "never"}
     assert judging_gains(alone) == [0.306]
+
+
+def test_the_held_out_checks_start_the_base_where_its_lr_was_taken(
+    twin_problem: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A 2 s null of the concealed benchmark: the base's first output-error fit stopped
+    # short (cost 125 k σ_x²), its refit from the Stribeck term's end reached 2.5 k, and the
+    # term's LR was taken against the refit. Held out against the first fit, the term
+    # "gained" 98 % on a second recording; against the refit, 7 %.
+    blank = OutputErrorFit(*[None] * len(OutputErrorFit._fields))
+    first = blank._replace(params={"Fc": 1.0}, cost=125_000.0, x_scale=1.0)
+    refit = blank._replace(params={"Fc": 2.0}, cost=2_500.0, x_scale=1.0)
+    term = blank._replace(params={"Fc": 2.0, "stribeck_A": -119.0}, cost=2_400.0, x_scale=1.0)
+    law = LawFit(
+        effect="stribeck",
+        problem=twin_problem,
+        fit=term,
+        lr=81.0,
+        p_value=1e-18,
+        delta_bic=66.0,
+        k=2,
+        params={"stribeck_A": -119.0, "stribeck_vst": 0.03},
+        cost_base=refit.cost,
+        base_fit=refit,
+    )
+
+    # the held-out cost of a model, read off the parameters it is simulated (or started) at
+    def held(params: dict[str, float]) -> float:
+        return 2_350.0 if "stribeck_A" in params else {1.0: 122_000.0, 2.0: 2_540.0}[params["Fc"]]
+
+    monkeypatch.setattr(simulation_test_module, "_fixed_cost", lambda test, p, s: held(p))
+    monkeypatch.setattr(simulation_test_module, "_held_test_cost", lambda tr, te, p, s: held(p))
+    settings = OutputErrorSettings(segment_s=SEGMENT_S)
+    second = second_recording_gain(twin_problem, first, law, settings)
+    split = heldout_gain(twin_problem, first, law, 0.3, settings)
+    for report in (second, split):
+        assert report["heldout_cost_base"] == 2_540.0
+        assert report["heldout_improvement"] == pytest.approx(1 - 2_350.0 / 2_540.0)
+    # without a refit recorded, the test's own base fit is the one
+    alone = second_recording_gain(twin_problem, first, replace(law, base_fit=None), settings)
+    assert alone["heldout_cost_base"] == 122_000.0
 
 
 def test_the_held_out_part_is_one_that_reaches_where_the_term_acts(twin_problem: Any) -> None:
