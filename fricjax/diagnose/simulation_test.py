@@ -431,7 +431,9 @@ def judging_gains(report: Mapping[str, Any]) -> list[float]:
     """The held-out gains of a law's ``report`` that judge it: the primary check's always
     (the second recording when given, else the record's split, whose NaN where no part
     reaches the place refuses the law: ``NaN > 0`` is false) and the split's beside a
-    second recording unless it is marked untestable there."""
+    second recording unless it is marked untestable there. Not ``run.heldout_judged``,
+    which drops an untestable primary check and leaves the finding to the cross-validation:
+    this stage has none, so a law no check reaches is not named."""
     gains = [report["heldout_improvement"]]
     if "heldout_split_improvement" in report and not report.get("heldout_split_untestable"):
         gains.append(report["heldout_split_improvement"])
