@@ -1151,7 +1151,10 @@ def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dic
 
 
 def _simulation_summary(sim: SimulationTest) -> dict[str, Any]:
-    """Every candidate's output-error test, for diagnosis.json and the benchmark."""
+    """Every candidate's output-error test, for diagnosis.json and the benchmark: costs in
+    units of σ_x², ``cost_base`` the base's first fit, each candidate's own ``cost_base``
+    the base fit its LR was taken against (the lower where the base was refitted from the
+    term's end) and ``cost_term`` its fit's."""
     return {
         "cost_base": sim.base.cost,
         "candidates": [
@@ -1161,6 +1164,8 @@ def _simulation_summary(sim: SimulationTest) -> dict[str, Any]:
                 "p_value": f.p_value,
                 "delta_bic": f.delta_bic,
                 "base_refitted": f.rebased,
+                "cost_base": f.cost_base,
+                "cost_term": f.fit.cost,
             }
             for f in sim.fits
         ],

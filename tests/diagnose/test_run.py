@@ -242,3 +242,31 @@ def test_diagnose_settings_refuse_a_wrong_type_or_range_in_one_line() -> None:
         DiagnoseSettings.from_dict({"max_terms": 0}, source="command line", flags=True)
     # an integer where a float is meant is the same number
     assert DiagnoseSettings.from_dict({"min_delta_bic": 6}).min_delta_bic == 6.0
+
+
+def test_each_law_reports_the_base_cost_its_lr_was_taken_against() -> None:
+    from fricjax.diagnose.run import _simulation_summary
+    from fricjax.diagnose.simulation_test import LawFit, SimulationTest
+    from fricjax.output_error import OutputErrorFit
+
+    # the 2 s null of the concealed benchmark: the base's first fit stopped short (125 k
+    # σ_x²), its refit from the Stribeck term's end reached 2.5 k, the LR's reference
+    blank = OutputErrorFit(*[None] * len(OutputErrorFit._fields))
+    first = blank._replace(cost=125_000.0)
+    refit = blank._replace(cost=2_500.0)
+    law = LawFit(
+        effect="stribeck",
+        problem=None,  # type: ignore[arg-type]
+        fit=blank._replace(cost=2_419.0),
+        lr=81.0,
+        p_value=2e-18,
+        delta_bic=66.0,
+        k=2,
+        params={},
+        cost_base=refit.cost,
+        base_fit=refit,
+    )
+    summary = _simulation_summary(SimulationTest(base=first, fits=[law], chosen=None))
+    (row,) = summary["candidates"]
+    assert summary["cost_base"] == 125_000.0
+    assert (row["cost_base"], row["cost_term"]) == (2_500.0, 2_419.0)
