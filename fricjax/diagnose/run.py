@@ -1137,11 +1137,7 @@ def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dic
             "runner_up": runner[0].effect if runner else "",
             "runner_up_delta_bic": runner[0].delta_bic if runner else float("nan"),
         },
-        **{
-            k: v
-            for k, v in sim.heldout.items()
-            if k in ("heldout_improvement", "heldout_split_improvement", "heldout_split_untestable")
-        },
+        **{k: v for k, v in sim.heldout.items() if any(k in pair for pair in HELDOUT_KEYS)},
         "heldout_metric": "output error on the second recording"
         if sim.heldout.get("heldout_part") == "second recording"
         else f"output error on the {sim.heldout.get('heldout_part', 'last')} part of the record",

@@ -434,9 +434,12 @@ def judging_gains(report: Mapping[str, Any]) -> list[float]:
     second recording unless it is marked untestable there. Not ``run.heldout_judged``,
     which drops an untestable primary check and leaves the finding to the cross-validation:
     this stage has none, so a law no check reaches is not named."""
-    gains = [report["heldout_improvement"]]
-    if "heldout_split_improvement" in report and not report.get("heldout_split_untestable"):
-        gains.append(report["heldout_split_improvement"])
+    from fricjax.diagnose.run import HELDOUT_KEYS
+
+    (primary, _), (split, split_why) = HELDOUT_KEYS
+    gains = [report[primary]]
+    if split in report and not report.get(split_why):
+        gains.append(report[split])
     return gains
 
 
