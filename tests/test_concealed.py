@@ -327,3 +327,41 @@ def test_null_calibration_tells_uniform_from_skewed_p_values() -> None:
     assert s["below_05"] > 0.15 and s["ks_p"] < 1e-6
     (short,) = score.null_calibration([{"duration": 0.272, "step1_p": {"stribeck": 0.3}}])
     assert (short["kind"], short["span"]) == ("score", "0.272 s")
+
+
+def test_the_oracle_takes_the_lower_base_fit_and_the_selections_bic(
+    written: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """score.oracle_gain, the scorer's "does the true term pay on this record": on a
+    0.272 s record the selection judges with a known variance, so the oracle's BIC gain is
+    ``LR − k·ln M`` (the profile form on ~30 whitened dimensions doubled it: a bump with
+    LR 20.8 showed 46.1 where the selection's own form gives 10.4); and a base fit from the
+    truth that stops short must not count for the term (a 1 s asymmetry: LR 36.5 against
+    the base from the truth, 10.6 against the base refitted from where the term ended)."""
+    score = _load("score")
+    select = sys.modules["fricjax.diagnose.select"]
+    rec_path, truth = _truth(written, 0)
+    honest = score.oracle_gain(truth, rec_path)
+    assert honest is not None and honest["oracle_known"] == 1.0
+    problem = score._kept_problem(rec_path)
+    theta0 = problem.theta(truth["base"])
+    wh = default_whitener(with_rest(problem, theta0), theta0)
+    k = len(truth["params"])
+    assert honest["oracle_dbic"] == pytest.approx(honest["oracle_lr"] - k * np.log(wh.dof))
+    # the base's first fit (from the truth) made to stop 100 σ_x² short
+    fit = select.gls_fit
+    first = []
+    sigma2 = truth["noise_std_m"] ** 2
+
+    def short_first(problem, model, spec, theta0, wh, settings=None):
+        theta, rss = fit(problem, model, spec, theta0, wh, settings)
+        if spec.n_free == problem.spec.n_free and not first:
+            first.append(rss)
+            return theta, rss + 100.0 * sigma2
+        return theta, rss
+
+    monkeypatch.setattr(select, "gls_fit", short_first)
+    patched = score.oracle_gain(truth, rec_path)
+    assert first, "the base was never fitted"
+    assert patched is not None
+    assert patched["oracle_lr"] == pytest.approx(honest["oracle_lr"], abs=1e-3)
