@@ -16,6 +16,18 @@ structure the catalogue's right answer leaves behind. Both are recomputed from t
 itself (its noise regenerated from the case's seed and subtracted), with the samples at rest
 its recording marks, so ``c`` recomputed here is checked against the truth file's.
 
+Where the true term has ``k`` parameters and the record ``M`` whitened dimensions, its
+likelihood ratio on the noisy record, at its true shape and with σ_x known, is noncentral
+χ²_k with noncentrality ``c_explained²`` (to first order), and the diagnosis' selection
+asks ``ΔBIC = LR − k·ln M > 10`` (:func:`fricjax.diagnose.select.bic_known`; the profile
+form ``M·ln(RSS_w/M)`` agrees where ``RSS_w ≈ M·σ_x²``). So
+
+    P(pays) = P(χ'²_k(c_explained²) > 10 + k·ln M)                        [2]
+
+and its sum over the cases of a level is how many of them any namer that keeps that bar can
+expect to name: an upper bound, as a namer must also find the shape (a search whose
+look-elsewhere its significance pays for) and rank the term first.
+
 Reads the truth files (this is scoring, never diagnosis) and, where present, the
 diagnosis of each case, and writes one Markdown table: per case at its level, c,
 c_explained, c_left and the first finding; then top-1 naming split by whether the true term
@@ -47,11 +59,23 @@ EXPLAINS = score.LEVEL_BAND[0]
 
 
 class Explained(NamedTuple):
-    """The split of one case's concealment, all in noise standard deviations [1]."""
+    """The split of one case's concealment, all in noise standard deviations [1], and the
+    dimensions the bar's penalty counts."""
 
     c: float  # recomputed from the record (the truth file's, if the record is its own)
     c_left: float  # what base + the true term, refitted, still leave
     c_explained: float  # √(c² − c_left²)
+    k: int  # the true term's free parameters
+    m: int  # whitened dimensions of the record (the diagnosis' M)
+
+
+def pays_probability(c: float, k: int, m: int, bar: float = score.ORACLE_DBIC) -> float:
+    """Equation [2] of the module docstring: the chance that a term of ``k`` parameters
+    whose signature is ``c`` noise standard deviations lowers the known-variance BIC of a
+    record of ``m`` whitened dimensions by more than ``bar``."""
+    from scipy.stats import ncx2
+
+    return float(ncx2.sf(bar + k * math.log(m), k, c * c))
 
 
 def explained_concealment(truth: dict[str, Any], recording: Recording, config: Config) -> Explained:
@@ -73,7 +97,8 @@ def explained_concealment(truth: dict[str, Any], recording: Recording, config: C
     theta_nested = ext.spec.flatten({**truth["params"], **refitted, **nulls})
     c_left = min(gen.bounded_refit(view, ext, floor, [x])[0] for x in (theta_true, theta_nested))
     # the nested start makes c_left <= c up to the optimiser's tolerance
-    return Explained(c, c_left, math.sqrt(max(c * c - c_left * c_left, 0.0)))
+    k = ext.spec.n_free - clean.spec.n_free
+    return Explained(c, c_left, math.sqrt(max(c * c - c_left * c_left, 0.0)), k, view.wh.dof)
 
 
 def at_level(truth: dict[str, Any]) -> bool:
@@ -99,16 +124,23 @@ def report(rows: Sequence[dict[str, Any]], data: Path) -> str:
         "leave of it; c_explained = √(c² − c_left²): what the right name can gain",
         "(`benchmarks/concealed/explained.py`). Cases at their level only.",
         "",
+        "k: the true term's parameters; M: the record's whitened dimensions; P(pays): the",
+        "chance that the true term, at its true shape, lowers the BIC by more than "
+        f"{score.ORACLE_DBIC:g} on a",
+        "noisy record, P(χ'²_k(c_explained²) > 10 + k·ln M) (module docstring, [2]).",
+        "",
         "| case | length [s] | hidden | level | c (truth file) | c (record) | c_explained"
-        " | c_left | first finding | top-1 |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        " | c_left | k | M | P(pays) | first finding | top-1 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         top1 = "–" if r["first"] is None else ("yes" if r["first"] == r["effect"] else "no")
         lines.append(
             f"| {r['case']} | {r['duration']:g} | {r['effect']} | {r['level']:g} "
             f"| {r['c_truth']:.2f} | {r['c']:.2f} | {r['c_explained']:.2f} "
-            f"| {r['c_left']:.2f} | {r['first'] or 'not diagnosed'} | {top1} |"
+            f"| {r['c_left']:.2f} | {r['k']} | {r['m']} "
+            f"| {pays_probability(r['c_explained'], r['k'], r['m']):.2f} "
+            f"| {r['first'] or 'not diagnosed'} | {top1} |"
         )
     lines += [
         "",
@@ -130,6 +162,26 @@ def report(rows: Sequence[dict[str, Any]], data: Path) -> str:
             named = sum(r["first"] == r["effect"] for r in rs)
             cells.append(f"{named}/{len(rs)}" if rs else "–")
         lines.append(f"| {level:g} | {cells[0]} | {cells[1]} |")
+    lines += [
+        "",
+        "What any namer that keeps the bar can expect to name first, against what the",
+        "diagnosis named: the sum of P(pays) over the cases of a level (an upper bound, [2]),",
+        "and the same if the true term explained all of c (c_left = 0):",
+        "",
+        "| level | cases | expected to pay | if the term explained all of c | top-1 |",
+        "|---|---|---|---|---|",
+    ]
+    for level in sorted({r["level"] for r in rows}):
+        rs = [r for r in rows if r["level"] == level]
+        expected = sum(pays_probability(r["c_explained"], r["k"], r["m"]) for r in rs)
+        if_all = sum(pays_probability(r["c"], r["k"], r["m"]) for r in rs)
+        named = [r for r in rs if r["first"] is not None]
+        top1 = sum(r["first"] == r["effect"] for r in named)
+        lines.append(
+            f"| {level:g} | {len(rs)} | {expected:.1f} ({expected / len(rs):.0%}) "
+            f"| {if_all:.1f} ({if_all / len(rs):.0%}) "
+            f"| {top1}/{len(named)} ({top1 / max(len(named), 1):.0%}) |"
+        )
     return "\n".join(lines) + "\n"
 
 
