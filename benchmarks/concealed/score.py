@@ -586,7 +586,14 @@ def oracle_gain(truth: dict[str, Any], path: Path) -> dict[str, float] | None:
     """
     from fricjax.diagnose.locate import compiled_jacfwd, default_whitener
     from fricjax.diagnose.run import with_rest
-    from fricjax.diagnose.select import bic, bic_known, gls_fit, whitened_residual
+    from fricjax.diagnose.select import (
+        base_range,
+        bic,
+        bic_known,
+        gls_fit,
+        variance_known,
+        whitened_residual,
+    )
 
     effect = truth["effect"]
     if effect == gen.NULL:
@@ -620,13 +627,9 @@ def oracle_gain(truth: dict[str, Any], path: Path) -> dict[str, float] | None:
     if rss_b2 < rss_b:
         theta_b, rss_b = theta_b2, rss_b2
     sigma2 = float(truth["noise_std_m"]) ** 2
-    # the selection's own rule (select.forward_select): a known variance where the
-    # whitened dimensions its base Jacobian leaves are no more than its parameters
-    sv = np.linalg.svd(
-        np.asarray(compiled_jacfwd(whitened_residual(problem, model, spec, wh), theta_b)),
-        compute_uv=False,
-    )
-    known = wh.dof - int(np.sum(sv > 1e-10 * sv[0])) <= spec.n_free
+    # the selection's own rule (select.forward_select), at the base's optimum
+    j_w = np.asarray(compiled_jacfwd(whitened_residual(problem, model, spec, wh), theta_b))
+    known = variance_known(max(wh.dof - base_range(j_w).shape[1], 1), spec.n_free)
     if known:
         dbic = bic_known(rss_b, wh.dof, spec.n_free, sigma2) - bic_known(
             rss_e, wh.dof, ext.spec.n_free, sigma2

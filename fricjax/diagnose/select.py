@@ -188,6 +188,21 @@ N_STARTS = 3
 _fast_jit = eqx.filter_jit(compiler_options=FAST_COMPILE)
 
 
+def base_range(j_w: Float[np.ndarray, "M d"]) -> Float[np.ndarray, "M r"]:
+    """Orthonormal basis [M, r] of the range of the whitened base Jacobian ``j_w`` [M, d]
+    (singular values below 1e-10 of the largest do not count)."""
+    q, sv, _ = np.linalg.svd(j_w, full_matrices=False)
+    return q[:, sv > 1e-10 * sv[0]]
+
+
+def variance_known(dof_left: int, n_free: int) -> bool:
+    """Whether the selection takes σ̂ from outside the residual (:func:`difference_sigma`)
+    and judges by :func:`bic_known`: where the whitened dimensions the base leaves,
+    ``dof_left``, are no more than its ``n_free`` parameters (the short records). Shared
+    with the benchmark's oracle, which must judge a record as the selection does."""
+    return dof_left <= n_free
+
+
 def _jacobian(fn: Any, theta: np.ndarray) -> np.ndarray:
     return np.asarray(compiled_jacfwd(fn, jnp.asarray(theta)))
 
@@ -694,13 +709,12 @@ def forward_select(
         fn = whitened_residual(problem, model, spec, wh)
         r_w = np.asarray(_eval(fn, jnp.asarray(theta)))
         j_w = _jacobian(fn, theta)
-        q_base, sv, _ = np.linalg.svd(j_w, full_matrices=False)
-        q_base = q_base[:, sv > 1e-10 * sv[0]]
+        q_base = base_range(j_w)
         r_perp = project_out(q_base, r_w)
         dof = max(wh.dof - q_base.shape[1], 1)
         sigma2 = float(r_perp @ r_perp / dof)
         external = 0
-        if dof <= spec.n_free and model_free_sigma:
+        if variance_known(dof, spec.n_free) and model_free_sigma:
             # On a short record the base takes most of the whitened dimensions (0.272 s:
             # 7-22 left of 48) and what it leaves of an effect sits in the few that carry
             # σ̂: on 22 such records σ̂/σ_x had median 2.05 (up to 24), so c = 10 scored at
