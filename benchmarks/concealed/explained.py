@@ -127,7 +127,8 @@ def report(rows: Sequence[dict[str, Any]], data: Path) -> str:
         "k: the true term's parameters; M: the record's whitened dimensions; P(pays): the",
         "chance that the true term, at its true shape, lowers the BIC by more than "
         f"{score.ORACLE_DBIC:g} on a",
-        "noisy record, P(χ'²_k(c_explained²) > 10 + k·ln M) (module docstring, [2]).",
+        f"noisy record, P(χ'²_k(c_explained²) > {score.ORACLE_DBIC:g} + k·ln M) (module "
+        "docstring, [2]).",
         "",
         "| case | length [s] | hidden | level | c (truth file) | c (record) | c_explained"
         " | c_left | k | M | P(pays) | first finding | top-1 |",

@@ -189,8 +189,9 @@ _fast_jit = eqx.filter_jit(compiler_options=FAST_COMPILE)
 
 
 def base_range(j_w: Float[np.ndarray, "M d"]) -> Float[np.ndarray, "M r"]:
-    """Orthonormal basis [M, r] of the range of the whitened base Jacobian ``j_w`` [M, d]
-    (singular values below 1e-10 of the largest do not count)."""
+    """Orthonormal basis [M, r] of the range of whitened base columns ``j_w`` [M, d] (the
+    Jacobian, or the part of it free to move); singular values below 1e-10 of the largest
+    do not count."""
     q, sv, _ = np.linalg.svd(j_w, full_matrices=False)
     return q[:, sv > 1e-10 * sv[0]]
 
@@ -360,8 +361,7 @@ def boxed_base(
     cols = j_w[:, fit.active_mask == 0]
     if cols.shape[1] == 0:
         return Boxed(np.zeros((j_w.shape[0], 0)), np.asarray(r_w, dtype=np.float64))
-    u, sv, _ = np.linalg.svd(cols, full_matrices=False)
-    q = u[:, sv > 1e-10 * sv[0]]
+    q = base_range(cols)
     return Boxed(q, project_out(q, r_w))
 
 
