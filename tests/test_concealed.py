@@ -387,3 +387,24 @@ def test_the_chance_that_a_term_pays_is_that_of_its_noncentral_likelihood_ratio(
         assert explained.pays_probability(c, k, m) == pytest.approx(mc, abs=0.005)
     assert explained.pays_probability(5.0, 3, 150) == pytest.approx(0.58, abs=0.01)
     assert explained.pays_probability(10.0, 3, 150) > 0.999
+
+
+def test_a_diagnose_setting_set_from_the_command_line_is_typed_and_checked() -> None:
+    """score.parse_overrides (``--set``): a value is read as TOML, a bare word as a string,
+    and a key the [diagnose] table does not know, or a value out of its range, is one
+    error line naming the key."""
+    from fricjax.errors import FricjaxError
+
+    score = _load("score")
+    assert score.parse_overrides(["min_delta_bic=6", "noise = auto", "max_terms=2"]) == {
+        "min_delta_bic": 6,
+        "noise": "auto",
+        "max_terms": 2,
+    }
+    assert score.parse_overrides([]) == {}
+    with pytest.raises(FricjaxError, match=r"min_dbic.*unknown key"):
+        score.parse_overrides(["min_dbic=6"])
+    with pytest.raises(FricjaxError, match=r"min_delta_bic.*>= 0"):
+        score.parse_overrides(["min_delta_bic=-1"])
+    with pytest.raises(FricjaxError, match="expected KEY=VALUE"):
+        score.parse_overrides(["min_delta_bic"])

@@ -199,14 +199,16 @@ def diagnose_rows(
     skip_existing: bool = True,
     repeat: bool = False,
     sources: str = "",
+    overrides: dict[str, Any] | None = None,
 ) -> list[dict]:
     """Diagnose each case in this process; one JSON per case in ``results`` (cases with one
     already are skipped when ``skip_existing``; a case another live process has claimed is
     left to it). ``repeat``: the held-out check scores on the case's second recording
     (``DATA/repeat/CASE.h5``, :func:`generate.write_repeat`). ``sources``: the run's
     :func:`generate.source_digest`, checked before and after each diagnosis (workers are
-    spawned and import the package from disk); each result records it. Never reads the
-    truth files."""
+    spawned and import the package from disk); each result records it. ``overrides``:
+    ``[diagnose]`` keys set over the benchmark config's (:func:`parse_overrides`); each
+    result records them. Never reads the truth files."""
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.config import load_config
     from fricjax.data.recording import read_recording
@@ -216,7 +218,8 @@ def diagnose_rows(
 
     cfg = load_config(gen.CONFIG)
     ident = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
-    settings = DiagnoseSettings.from_dict(dict(cfg.table("diagnose")), source=cfg.source)
+    overrides = dict(overrides or {})
+    settings = DiagnoseSettings.from_dict({**cfg.table("diagnose"), **overrides}, source=cfg.source)
     out = []
     for row in rows:
         result_path = Path(results) / f"{row['case']}.json"
@@ -275,6 +278,7 @@ def diagnose_rows(
                 # the output-error stage, where it ran (None: equation error decided)
                 "simulation_test": js.get("simulation_test"),
                 "sources": sources or gen.source_digest(),
+                "diagnose_overrides": overrides,
             }
         except Exception as err:  # one broken case must not lose the others
             result = {
@@ -353,6 +357,7 @@ def run_all(
     per_process: int = 0,
     repeat: bool = False,
     sources: str = "",
+    overrides: dict[str, Any] | None = None,
 ) -> dict[str, dict]:
     """Diagnose every row (skipping those already in ``results`` when ``resume``).
 
@@ -360,7 +365,9 @@ def run_all(
     worker processes (each compiles once per length). ``per_process`` > 0: consecutive
     batches of that many cases, each in a fresh worker process (``jobs`` at a time) — XLA's
     CPU backend keeps every compiled program's code, and one process diagnosing ~25 cases
-    ran out of it ("LLVM ERROR: Unable to allocate section memory", twice)."""
+    ran out of it ("LLVM ERROR: Unable to allocate section memory", twice).
+    ``overrides``: as :func:`diagnose_rows`; a diagnosis in ``results`` made with other
+    ones is not reused (one :class:`FricjaxError` line)."""
     results.mkdir(parents=True, exist_ok=True)
     done: dict[str, dict] = {}
     todo = []
@@ -368,6 +375,12 @@ def run_all(
         path = results / f"{row['case']}.json"
         if resume and path.is_file():
             done[row["case"]] = json.loads(path.read_text())
+            had = done[row["case"]].get("diagnose_overrides") or {}
+            if had != (overrides or {}):
+                raise FricjaxError(
+                    f"{path}: diagnosed with [diagnose] overrides {had or 'none'}, this run "
+                    f"sets {overrides or 'none'}: use another --data folder"
+                )
         else:
             todo.append(row)
     todo.sort(key=lambda r: r["duration_s"])  # stable: keeps run_order within a length
@@ -379,7 +392,16 @@ def run_all(
             max_workers=max(jobs, 1), mp_context=get_context("spawn"), max_tasks_per_child=1
         ) as pool:
             futures = [
-                pool.submit(diagnose_rows, batch, str(data), str(results), resume, repeat, sources)
+                pool.submit(
+                    diagnose_rows,
+                    batch,
+                    str(data),
+                    str(results),
+                    resume,
+                    repeat,
+                    sources,
+                    overrides,
+                )
                 for batch in batches
             ]
             for fut in futures:
@@ -387,14 +409,16 @@ def run_all(
                     done[res["case"]] = res
         return done
     if jobs <= 1 or len(todo) <= 1:
-        for res in diagnose_rows(todo, str(data), str(results), resume, repeat, sources):
+        for res in diagnose_rows(todo, str(data), str(results), resume, repeat, sources, overrides):
             done[res["case"]] = res
         return done
     # round robin: every worker walks the list in run order, lengths stay together
     chunks: list[list[dict]] = [todo[i::jobs] for i in range(jobs)]
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
         futures = [
-            pool.submit(diagnose_rows, chunk, str(data), str(results), resume, repeat, sources)
+            pool.submit(
+                diagnose_rows, chunk, str(data), str(results), resume, repeat, sources, overrides
+            )
             for chunk in chunks
             if chunk
         ]
@@ -402,6 +426,31 @@ def run_all(
             for res in fut.result():
                 done[res["case"]] = res
     return done
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings (``--set``) as ``[diagnose]`` keys over the benchmark
+    config's, each VALUE read as a TOML value (a bare word as a string) and checked by
+    :meth:`DiagnoseSettings.from_dict`; a mistake is one :class:`FricjaxError` line."""
+    import tomllib
+
+    from fricjax.config import load_config
+    from fricjax.diagnose.run import DiagnoseSettings
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise FricjaxError(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out[key] = value
+    cfg = load_config(gen.CONFIG)
+    DiagnoseSettings.from_dict({**cfg.table("diagnose"), **out}, source="--set")
+    return out
 
 
 # -- scoring ---------------------------------------------------------------------------------
@@ -1532,6 +1581,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "new noise) for the held-out check, instead of the last part of the record",
     )
     ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a [diagnose] setting over the benchmark config's (e.g. min_delta_bic=6); "
+        "repeatable; recorded in each diagnosis and in the report",
+    )
+    ap.add_argument(
         "--reverse",
         action="store_true",
         help="diagnose in reverse order (a second run on the same DATA meets the first)",
@@ -1548,6 +1605,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.nulls if with_nulls else 0,
         )
     )
+    try:
+        overrides = parse_overrides(args.set)
+    except FricjaxError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     data = Path(args.data)
     load_start = machine()
     commit, status = git_state()
@@ -1581,6 +1643,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 per_process=args.per_process,
                 repeat=args.repeat,
                 sources=sources,
+                overrides=overrides,
             )
         except FricjaxError as err:
             print(f"error: {err}", file=sys.stderr)
@@ -1634,7 +1697,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         "lengths [s]": args.lengths,
         "replicates": str(args.reps),
         "seed": str(args.seed),
-        "diagnose settings": "configs/paper.toml ([search], [anneal], [diagnose] defaults)",
+        "diagnose settings": "configs/paper.toml ([search], [anneal], [diagnose] defaults)"
+        + "".join(f"; {k} = {v!r}" for k, v in overrides.items()),
+        "[diagnose] overrides of the diagnoses": _tally(
+            ", ".join(f"{k} = {v!r}" for k, v in (r.get("diagnose_overrides") or {}).items())
+            or "none"
+            for r in results.values()
+        ),
         "held-out check on": (
             "a second recording of each case (same plant and motion, new noise draw; "
             "generate.write_repeat), given to diagnose as its validation recording"
