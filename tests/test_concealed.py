@@ -435,3 +435,21 @@ def test_a_term_that_must_also_be_significant_pays_no_more_often_than_its_likeli
         assert explained.pays_probability(5.0, 3, 30, bar, gate) <= explained.pays_probability(
             5.0, 3, 30, bar
         )
+
+
+def test_the_oracle_judges_the_true_term_by_the_bar_the_diagnoses_ran_with() -> None:
+    """score.oracle_section: a true term that lowers BIC by 7 pays under a bar of 6
+    (``--set min_delta_bic=6``) and not under the default 10; the text states the bar, and
+    the bar is the one the settings resolve to."""
+    score = _load("score")
+    rows = [
+        {"effect": "stribeck", "level": 5.0, "oracle_dbic": 7.0, "top1": True},
+        {"effect": "stribeck", "level": 5.0, "oracle_dbic": 12.0, "top1": False},
+    ]
+    at_10 = "\n".join(score.oracle_section(rows, [5.0]))
+    at_6 = "\n".join(score.oracle_section(rows, [5.0], bar=6.0))
+    assert "| **all effects** | 1/2 · 0/1 · 9.5 |" in at_10
+    assert "| **all effects** | 2/2 · 1/2 · 9.5 |" in at_6
+    assert "more than 6 (the diagnosis' own bar)" in at_6
+    assert score.diagnose_settings().min_delta_bic == score.ORACLE_DBIC
+    assert score.diagnose_settings(score.parse_overrides(["min_delta_bic=6"])).min_delta_bic == 6
