@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fricjax.config import Config, load_config
+from fricjax.data.noise import estimate_noise
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
@@ -99,6 +100,12 @@ def inspect_recording(
     }
     if m is not None:
         summary["m·a range [N]"] = f"{force.min():.4g} .. {force.max():.4g}"
+    # the recording's own noise floor, independent of any model (fricjax.data.noise)
+    summary["x noise"] = estimate_noise(rec.x).describe("m")
+    if rec.F is not None:
+        summary["F noise"] = estimate_noise(rec.F).describe("N")
+    if rec.u is not None:
+        summary["u noise"] = estimate_noise(rec.u).describe(rec.u_unit or "(u unit)")
     out = Path(png) if png else Path(recording).with_suffix(".png")
     fig = plot_signals(d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out)
     return summary, fig

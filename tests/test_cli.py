@@ -56,6 +56,9 @@ def test_inspect_writes_a_figure(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "velocity reversals" in out.stdout and "272" in out.stdout
+    # the twin's x noise is 24 µm; the recording's own high band must say so within 15 %
+    line = next(s for s in out.stdout.splitlines() if s.startswith("x noise"))
+    assert abs(float(line.split()[2]) / 24e-6 - 1) < 0.15
 
 
 def test_identify_then_show(tmp_path: Path) -> None:
