@@ -357,7 +357,9 @@ def _stage_progress(quiet: bool, console: Any = None) -> Iterator[Any]:
 
         def on_stage(event: Any) -> None:
             if event.stage != last[0] and last[0]:
-                bar.console.print(f"[dim]{event.elapsed_s:7.1f} s[/] done: {last[0]}")
+                bar.console.print(
+                    f"[dim]{event.elapsed_s:7.1f} s[/] done: {last[0]}", highlight=False
+                )
             last[0] = event.stage
             bar.update(task, description=f"[bold]{event.stage}[/]: {event.detail}")
 
