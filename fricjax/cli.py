@@ -400,7 +400,10 @@ def diagnose(
             overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
             on_stage=on_stage,
         )
-    if not diag.findings:
+    untested = diag.clock.not_tested()
+    if not diag.findings and untested:
+        typer.echo(f"nothing found among the candidates tested; {len(untested)} not tested")
+    elif not diag.findings:
         typer.echo("no missing physics found (residual consistent with noise)")
     for f in diag.findings:
         typer.echo(f"{f['effect']}: p = {f['p_value']:.2g}, dBIC = {fmt(f['delta_bic'], 4)}")

@@ -113,7 +113,9 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
             f"**Not tested (time limit)**: {', '.join(diag.clock.not_tested())} (section Time).",
             "",
         ]
-    if not diag.findings:
+    if not diag.findings and diag.clock.not_tested():
+        lines += ["**Nothing found among the candidates tested** (see above).", ""]
+    elif not diag.findings:
         lines += [
             "**Nothing is missing**: no catalogue term lowers BIC significantly and the "
             "residual shows no significant structure.",

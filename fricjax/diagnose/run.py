@@ -199,7 +199,10 @@ class DiagnoseSettings:
                 raise FricjaxError(f"{where(source, label)}: must be {what}, got {value!r}")
             values[key] = value
         if "stage_limits" in values:  # a table sets the stages it names, the rest keep theirs
-            values["stage_limits"] = {**STAGE_LIMITS, **values["stage_limits"]}
+            values["stage_limits"] = {
+                **STAGE_LIMITS,
+                **{k: float(v) for k, v in values["stage_limits"].items()},
+            }
         return cls(**values)
 
 
