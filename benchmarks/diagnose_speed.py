@@ -62,7 +62,7 @@ CASES: dict[str, tuple[str, str, float]] = {
 }
 
 
-def make_recording(case: str, work: Path) -> Path | None:
+def make_recording(case: str, work: Path, emps: Path = EMPS) -> Path | None:
     """The case's recording as a .h5 file in ``work`` (None: its data are absent)."""
     from fricjax.data.recording import Recording, write_recording
 
@@ -73,12 +73,12 @@ def make_recording(case: str, work: Path) -> Path | None:
 
         rec, truth = paper_twin(duration=CASES[case][2], seed=11)
         return write_recording(rec, work / f"{case}.h5", truth=truth)
-    if not (EMPS / "DATA_EMPS.mat").is_file():
+    if not (emps / "DATA_EMPS.mat").is_file():
         return None
     from fricjax.data.importers import import_mat
 
     rec = import_mat(
-        EMPS / "DATA_EMPS.mat",
+        emps / "DATA_EMPS.mat",
         mapping={"t": "t", "x": "qm", "u": "vir", "r": "qg"},
         u_unit="V",
         name="DATA_EMPS",
@@ -254,6 +254,7 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=math.inf, help="start no run after this")
     ap.add_argument("--time-limit", type=float, default=math.inf, help="[diagnose] time_limit")
     ap.add_argument("--report", type=Path, default=OUT)
+    ap.add_argument("--emps", type=Path, default=EMPS, help="folder of DATA_EMPS.mat")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--recording", help=argparse.SUPPRESS)
     ap.add_argument("--config", help=argparse.SUPPRESS)
@@ -284,9 +285,9 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="diagnose_speed_") as tmp:
         work = Path(tmp)
         for case in cases:
-            recording = make_recording(case, work)
+            recording = make_recording(case, work, args.emps)
             if recording is None:
-                msg = f"{case}: skipped, EMPS data absent (expected in {EMPS}; see its README)"
+                msg = f"{case}: skipped, EMPS data absent (expected in {args.emps}; see its README)"
                 print(msg, file=sys.stderr)
                 left_out.append(msg)
                 continue
