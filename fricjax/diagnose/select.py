@@ -940,6 +940,8 @@ def forward_select(
             # presliding lag, scored 34.9 and 34.5 and gained ΔBIC -0.8 and -4.9), so the
             # next ones are refitted before the step gives up.
         if not refits:  # a time limit left every eligible candidate unrefitted
+            for sc in scores:
+                sc.delta_bic_linear = float(lin[sc.effect])
             steps.append(
                 Step(
                     scores,
