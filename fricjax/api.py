@@ -20,6 +20,9 @@ from fricjax.params import check_known
 from fricjax.problem import Problem, build_problem
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from fricjax.diagnose.stages import StageEvent
     from fricjax.simulation import SimulationReport
 
 
@@ -331,11 +334,14 @@ def diagnose_recording(
     validation: str | Path | None = None,
     mass: float | None = None,
     overrides: dict[str, Any] | None = None,
+    on_stage: Callable[[StageEvent], None] | None = None,
 ) -> tuple[Any, dict[str, Path]]:
     """``fricjax diagnose``: base fit, locate, name, model, prove; write DIR/diagnosis.json.
 
-    Never reads ``/truth``: the recording is read through :func:`read_recording`, which
-    ignores that group.
+    ``overrides``: ``[diagnose]`` keys set from the command line (``time_limit`` among
+    them); ``on_stage``: called with each :class:`~fricjax.diagnose.stages.StageEvent`
+    (progress). Never reads ``/truth``: the recording is read through
+    :func:`read_recording`, which ignores that group.
     """
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
@@ -363,6 +369,7 @@ def diagnose_recording(
         settings=settings,
         validation=val,
         recording=str(recording),
+        on_stage=on_stage,
     )
     return diag, write_diagnosis(diag, out)
 

@@ -7,8 +7,10 @@ Every command maps onto one API call; a user mistake (:class:`FricjaxError`) pri
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -336,6 +338,34 @@ def simulate(
     typer.echo(f"files: {', '.join(str(p) for p in report.files.values())}")
 
 
+@contextmanager
+def _stage_progress(quiet: bool, console: Any = None) -> Iterator[Any]:
+    """A live line on stderr while a diagnosis runs: its stage, what it is doing, the time
+    since it started (rich); yields the ``on_stage`` callback, or None when ``quiet`` or
+    stderr is not a terminal (a log file gets no control characters)."""
+    from rich.console import Console
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    console = console or Console(stderr=True)
+    if quiet or not console.is_terminal:
+        yield None
+        return
+    columns = (SpinnerColumn(), TimeElapsedColumn(), TextColumn("{task.description}"))
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task("starting", total=None)
+        last = [""]
+
+        def on_stage(event: Any) -> None:
+            if event.stage != last[0] and last[0]:
+                bar.console.print(
+                    f"[dim]{event.elapsed_s:7.1f} s[/] done: {last[0]}", highlight=False
+                )
+            last[0] = event.stage
+            bar.update(task, description=f"[bold]{event.stage}[/]: {event.detail}")
+
+        yield on_stage
+
+
 @app.command()
 def diagnose(
     recording: RecArg,
@@ -346,6 +376,11 @@ def diagnose(
     ] = None,
     alpha: Annotated[float | None, typer.Option(help="Family-wise significance level")] = None,
     max_terms: Annotated[int | None, typer.Option(help="Most terms to add")] = None,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(help="Seconds for the whole diagnosis; what it leaves out is reported"),
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress display")] = False,
     mass: MassOpt = None,
 ) -> None:
     """Locate the mismatch, name the physics left out, model it, show the fit improve."""
@@ -355,15 +390,20 @@ def diagnose(
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead
     enable_compilation_cache()
-    diag, paths = diagnose_recording(
-        recording,
-        config,
-        out=out,
-        validation=validation,
-        mass=mass,
-        overrides={"alpha": alpha, "max_terms": max_terms},
-    )
-    if not diag.findings:
+    with _stage_progress(quiet) as on_stage:
+        diag, paths = diagnose_recording(
+            recording,
+            config,
+            out=out,
+            validation=validation,
+            mass=mass,
+            overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
+            on_stage=on_stage,
+        )
+    untested = diag.clock.not_tested()
+    if not diag.findings and untested:
+        typer.echo(f"nothing found among the candidates tested; {len(untested)} not tested")
+    elif not diag.findings:
         typer.echo("no missing physics found (residual consistent with noise)")
     for f in diag.findings:
         typer.echo(f"{f['effect']}: p = {f['p_value']:.2g}, dBIC = {fmt(f['delta_bic'], 4)}")
@@ -373,6 +413,8 @@ def diagnose(
         f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; "
         f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}"
     )
+    for item in diag.clock.summary()["skipped"]:
+        typer.echo(f"time limit at {item['stage']}: {item['what']}")
     typer.echo(f"report: {paths['report']}")
 
 

@@ -154,3 +154,32 @@ def test_nan_in_a_csv_is_named(tmp_path: Path) -> None:
     )
     assert out.returncode == 2
     assert "bad.csv" in out.stderr and "NaN" in out.stderr
+
+
+def test_diagnosis_progress_shows_each_stage_on_a_terminal_and_nothing_elsewhere() -> None:
+    import io
+
+    from rich.console import Console
+
+    from fricjax.cli import _stage_progress
+    from fricjax.diagnose.stages import StageEvent
+
+    tty = Console(file=io.StringIO(), force_terminal=True, width=100)
+    with _stage_progress(False, tty) as on_stage:
+        assert on_stage is not None
+        on_stage(StageEvent("base_fit", "base fit: search and refine", 0.0))
+        on_stage(StageEvent("scores", "step 1: score test of impact (1/14)", 12.5))
+    # the finished stage is printed with the time the next one began
+    from rich.text import Text
+
+    assert "12.5 s done: base_fit" in Text.from_ansi(tty.file.getvalue()).plain
+    for console, quiet in ((tty, True), (Console(file=io.StringIO()), False)):
+        with _stage_progress(quiet, console) as on_stage:
+            assert on_stage is None
+
+
+def test_a_time_limit_that_is_not_positive_is_refused() -> None:
+    out = fricjax("diagnose", "data/paper_twin.h5", "--time-limit", "0", "--out", "/nonexistent")
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--time-limit: must be > 0" in lines[0]

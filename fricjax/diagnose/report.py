@@ -108,7 +108,14 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
         f"Base model: `{diag.base_model}`. {noise}",
         "",
     ]
-    if not diag.findings:
+    if diag.clock.not_tested():
+        lines += [
+            f"**Not tested (time limit)**: {', '.join(diag.clock.not_tested())} (section Time).",
+            "",
+        ]
+    if not diag.findings and diag.clock.not_tested():
+        lines += ["**Nothing found among the candidates tested** (see above).", ""]
+    elif not diag.findings:
         lines += [
             "**Nothing is missing**: no catalogue term lowers BIC significantly and the "
             "residual shows no significant structure.",
@@ -199,7 +206,46 @@ def markdown_report(diag: Diagnosis, paths: dict[str, Path]) -> str:
     lines += ["## Plots", ""] + [
         f"- [{k}]({p.name})" for k, p in paths.items() if p.suffix == ".png"
     ]
+    lines += ["", *_timing_section(diag)]
     return "\n".join(lines) + "\n"
+
+
+def _timing_section(diag: Diagnosis) -> list[str]:
+    """Wall time per stage, the time limits, and what a limit left out (each untested
+    candidate by name: a diagnosis cut short never passes one over in silence)."""
+    from fricjax.diagnose.stages import STAGES
+
+    t = diag.clock.summary()
+    limits = t["limits_s"]
+    rows = [
+        (k, f"{t['stages_s'][k]:.1f}", fmt(limits.get(k), 4) if k in limits else "-")
+        for k in STAGES
+        if k in t["stages_s"]
+    ]
+    lines = [
+        "## Time",
+        "",
+        f"{t['total_s']:.1f} s in all (limit {fmt(limits['total'], 4)} s); by stage "
+        "(the report's own time so far):",
+        "",
+        "```",
+        format_table(rows, ("stage", "time [s]", "limit [s]")),
+        "```",
+        "",
+    ]
+    if t["skipped"]:
+        lines += [
+            "**Time limit hit**: this diagnosis is incomplete; what was left out:",
+            "",
+            *(
+                f"- at {s['stage']} ({s['at_s']:.1f} s, {s['limit']} limit): {s['what']}"
+                for s in t["skipped"]
+            ),
+            "",
+            "Raise `--time-limit` or `[diagnose] stage_limits` to test them.",
+            "",
+        ]
+    return lines
 
 
 # what a check that could fit only the finding's own parameters means (short records)

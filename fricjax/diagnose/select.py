@@ -68,6 +68,7 @@ from fricjax.diagnose.locate import (
     project_out,
     score_pvalue,
 )
+from fricjax.diagnose.stages import Clock
 from fricjax.diagnose.whiten import Whitener, WhitenOp, robust_sigma
 from fricjax.model.system import Model
 from fricjax.output_error import noise_scale
@@ -678,6 +679,7 @@ def forward_select(
     confirm: Callable[
         [tuple[Model, ParamSpec, np.ndarray], Refit], tuple[bool, dict[str, Any]]
     ] = lambda current, refit: (True, {}),
+    clock: Clock | None = None,
 ) -> Selection:
     """Add catalogue terms one at a time while they keep paying (module docstring);
     ``noise``: the noise model of :func:`~fricjax.diagnose.locate.default_whitener`;
@@ -692,77 +694,96 @@ def forward_select(
     rule (default: none, every candidate that passes the tests is ``ok``). A candidate that
     passes the tests is added only if ``ok``; otherwise it is kept in
     :attr:`Step.rejected` (never offered again) and the next candidate that passes the tests
-    at this step is asked; a step with none left ends the selection."""
+    at this step is asked; a step with none left ends the selection.
+
+    ``clock``: the diagnosis' stages and time limits (:mod:`fricjax.diagnose.stages`); a
+    candidate a limit leaves unscored, unrefitted or unchecked is recorded there as not
+    tested and never named."""
+    clock = clock or Clock()
     model, spec = problem.model, problem.spec
-    wh = default_whitener(problem, theta, noise)
-    # A base left in a poorer minimum than the data allow leaves its misfit in every
-    # test, where the most flexible candidate takes it for physics.
-    theta, rss = min(
-        (gls_fit(problem, model, spec, th, wh) for th in (theta, *starts)), key=lambda f: f[1]
-    )
+    with clock.stage("whitening"):
+        wh = default_whitener(problem, theta, noise)
+        # A base left in a poorer minimum than the data allow leaves its misfit in every
+        # test, where the most flexible candidate takes it for physics.
+        theta, rss = min(
+            (gls_fit(problem, model, spec, th, wh) for th in (theta, *starts)),
+            key=lambda f: f[1],
+        )
     base_theta = theta.copy()
     steps: list[Step] = []
     used: set[str] = set()
     sigma = float(np.sqrt(rss / max(wh.dof - spec.n_free, 1)))
     first_known: float | None = None
     for _ in range(max_terms):
-        fn = whitened_residual(problem, model, spec, wh)
-        r_w = np.asarray(_eval(fn, jnp.asarray(theta)))
-        j_w = _jacobian(fn, theta)
-        q_base = base_range(j_w)
-        r_perp = project_out(q_base, r_w)
-        dof = max(wh.dof - q_base.shape[1], 1)
-        sigma2 = float(r_perp @ r_perp / dof)
-        external = 0
-        if variance_known(dof, spec.n_free) and model_free_sigma:
-            # On a short record the base takes most of the whitened dimensions (0.272 s:
-            # 7-22 left of 48) and what it leaves of an effect sits in the few that carry
-            # σ̂: on 22 such records σ̂/σ_x had median 2.05 (up to 24), so c = 10 scored at
-            # noise level. The third difference of x knows nothing of the model: 0.90-1.15
-            # σ_x on all 34 of them.
-            sigma2, external = difference_sigma(problem.x)
-            sigma2 = sigma2**2
-        # With σ̂ from outside the residual, the BIC is that of a known variance: the
-        # profile form M·ln(RSS/M) divides by what the few dimensions left happen to hold
-        # (30 whitened dimensions, 26 base parameters: a three-parameter term leaves one),
-        # and the residual's degrees of freedom are needed for nothing but the maps.
-        known = sigma2 if external else None
-        if not steps:
-            first_known = known
-        min_left = 1 if external else MIN_DOF_LEFT
-        bic_base = (
-            bic(float(r_w @ r_w), wh.dof, spec.n_free)
-            if known is None
-            else bic_known(float(r_w @ r_w), wh.dof, spec.n_free, known)
-        )
-        bias = (
-            score_bias(problem, model, spec, theta, wh, robust_sigma(wh, r_w) ** 2) if eiv else None
-        )
-        pool = [cd for cd in candidates if cd.effect not in used and cd.applicable(model, spec)]
-        if not pool:
-            break
-        # Short records only: there the base fills its box to absorb an effect.
-        boxed = boxed_base(j_w, r_w, theta, spec) if external else None
-        scores = [
-            score_candidate(
-                problem,
-                model,
-                spec,
-                theta,
-                cd,
-                wh,
-                q_base,
-                r_perp,
-                sigma2,
-                n_mc=n_mc,
-                seed=seed + i,
-                dof=dof,
-                bias=bias,
-                external=external,
-                boxed=boxed,
+        with clock.stage("scores"):
+            fn = whitened_residual(problem, model, spec, wh)
+            r_w = np.asarray(_eval(fn, jnp.asarray(theta)))
+            j_w = _jacobian(fn, theta)
+            q_base = base_range(j_w)
+            r_perp = project_out(q_base, r_w)
+            dof = max(wh.dof - q_base.shape[1], 1)
+            sigma2 = float(r_perp @ r_perp / dof)
+            external = 0
+            if variance_known(dof, spec.n_free) and model_free_sigma:
+                # On a short record the base takes most of the whitened dimensions (0.272 s:
+                # 7-22 left of 48) and what it leaves of an effect sits in the few that carry
+                # σ̂: on 22 such records σ̂/σ_x had median 2.05 (up to 24), so c = 10 scored at
+                # noise level. The third difference of x knows nothing of the model: 0.90-1.15
+                # σ_x on all 34 of them.
+                sigma2, external = difference_sigma(problem.x)
+                sigma2 = sigma2**2
+            # With σ̂ from outside the residual, the BIC is that of a known variance: the
+            # profile form M·ln(RSS/M) divides by what the few dimensions left happen to hold
+            # (30 whitened dimensions, 26 base parameters: a three-parameter term leaves one),
+            # and the residual's degrees of freedom are needed for nothing but the maps.
+            known = sigma2 if external else None
+            if not steps:
+                first_known = known
+            min_left = 1 if external else MIN_DOF_LEFT
+            bic_base = (
+                bic(float(r_w @ r_w), wh.dof, spec.n_free)
+                if known is None
+                else bic_known(float(r_w @ r_w), wh.dof, spec.n_free, known)
             )
-            for i, cd in enumerate(pool)
-        ]
+            bias = (
+                score_bias(problem, model, spec, theta, wh, robust_sigma(wh, r_w) ** 2)
+                if eiv
+                else None
+            )
+            pool = [cd for cd in candidates if cd.effect not in used and cd.applicable(model, spec)]
+            if not pool:
+                break
+            # Short records only: there the base fills its box to absorb an effect.
+            boxed = boxed_base(j_w, r_w, theta, spec) if external else None
+            scores = []
+            for i, cd in enumerate(pool):
+                if clock.over("scores"):
+                    clock.untested("scores", cd.effect)
+                    continue
+                clock.note(
+                    f"step {len(steps) + 1}: score test of {cd.effect} ({i + 1}/{len(pool)})"
+                )
+                scores.append(
+                    score_candidate(
+                        problem,
+                        model,
+                        spec,
+                        theta,
+                        cd,
+                        wh,
+                        q_base,
+                        r_perp,
+                        sigma2,
+                        n_mc=n_mc,
+                        seed=seed + i,
+                        dof=dof,
+                        bias=bias,
+                        external=external,
+                        boxed=boxed,
+                    )
+                )
+            if not scores:
+                break
         by_name = {cd.effect: cd for cd in pool}
         rss_base = float(r_w @ r_w)
         done: dict[str, Refit] = {}
@@ -783,11 +804,18 @@ def forward_select(
         # ratio; on the 12 null 0.272 s records of the benchmark the smallest p of the
         # excess was 0.031.
         refit_all = bool(external) and lof_p < alpha
+        lr_unfit: set[str] = set()
         for i, sc in enumerate(scores):
             if (by_lr and by_name[sc.effect].by_refit) or refit_all:
-                rf = refit_candidate(
-                    problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base, known
-                )
+                if clock.over("refits"):
+                    # its test is the likelihood ratio: unrefitted, it has none
+                    clock.untested("refits", sc.effect)
+                    lr_unfit.add(sc.effect)
+                    continue
+                with clock.stage("refits", f"likelihood-ratio refit of {sc.effect}"):
+                    rf = refit_candidate(
+                        problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base, known
+                    )
                 # The refit may have left the base's basin for a better one that the base
                 # alone reaches too (short records: a null's "gain" of 22 σ² on 0.272 s):
                 # the ratio is taken against the base refitted from the refit's end point.
@@ -799,6 +827,9 @@ def forward_select(
                 )
                 done[sc.effect] = replace(rf, delta_bic=bic_ref - rf.bic)
                 scores[i] = likelihood_ratio(sc, done[sc.effect], rss_ref, sigma2)
+        scores = [sc for sc in scores if sc.effect not in lr_unfit]
+        if not scores:
+            break
         ranked = sorted(scores, key=lambda s: (s.p_value, -s.stat))
         # Linearised ΔBIC of each candidate from its statistic (for a score, one
         # Gauss-Newton step from the base optimum: the whitened RSS drops by S·σ²; for a
@@ -849,13 +880,19 @@ def forward_select(
         # ΔBIC 233 was asked before the periodic term's 344).
         batch = len(queue) if external else max(n_refit, 1)
         while True:
-            refits += [
-                refit_candidate(
-                    problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base, known
-                )
-                for sc in queue[:batch]
-            ]
+            for sc in queue[:batch]:
+                if clock.over("refits"):
+                    clock.untested("refits", sc.effect)
+                    continue
+                with clock.stage("refits", f"step {len(steps) + 1}: refit of {sc.effect}"):
+                    refits.append(
+                        refit_candidate(
+                            problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base, known
+                        )
+                    )
             queue = queue[batch:]
+            if not refits:
+                break
             by_gain = sorted(refits, key=lambda r: -r.delta_bic)
             passes = [
                 p_of[rf.effect] < alpha / len(pool)
@@ -882,7 +919,14 @@ def forward_select(
                 )
                 if same > SAME_STRUCTURE:
                     continue
-                ok, report = confirm((model, spec, theta), rf)
+                if clock.over("heldout"):
+                    # a term is named only once a held-out check has judged it
+                    clock.untested("heldout", rf.effect)
+                    continue
+                with clock.stage(
+                    "heldout", f"step {len(steps) + 1}: held-out check of {rf.effect}"
+                ):
+                    ok, report = confirm((model, spec, theta), rf)
                 if ok:
                     chosen = rf
                     break
@@ -895,6 +939,25 @@ def forward_select(
             # (0.272 s, hidden periodic force, c = 5: the two refitted, a drift and a
             # presliding lag, scored 34.9 and 34.5 and gained ΔBIC -0.8 and -4.9), so the
             # next ones are refitted before the step gives up.
+        if not refits:  # a time limit left every eligible candidate unrefitted
+            for sc in scores:
+                sc.delta_bic_linear = float(lin[sc.effect])
+            steps.append(
+                Step(
+                    scores,
+                    [],
+                    None,
+                    eligible[0].p_value,
+                    0.0,
+                    "",
+                    bic_base,
+                    [],
+                    {},
+                    lof_p,
+                    lof_excess,
+                )
+            )
+            break
         best = chosen or by_gain[0]
         best_score = next(sc for sc in scores if sc.effect == best.effect)
         others = [

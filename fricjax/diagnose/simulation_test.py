@@ -81,6 +81,7 @@ from jaxtyping import Array, Float, Int
 from scipy import stats
 
 from fricjax.diagnose.catalogue import candidate
+from fricjax.diagnose.stages import Clock
 from fricjax.output_error import (
     OutputError,
     OutputErrorFit,
@@ -453,6 +454,7 @@ def simulation_test(
     fraction: float = 0.3,
     settings: OutputErrorSettings | None = None,
     validation: Problem | None = None,
+    clock: Clock | None = None,
 ) -> SimulationTest:
     """Test the pointwise candidates ``effects`` by output error on ``problem`` (base model,
     ``start`` its equation-error estimate by name): module docstring. With ``validation``
@@ -460,7 +462,9 @@ def simulation_test(
     there (:func:`second_recording_gain`) and by the record's own split where that reaches
     its place (reported as ``heldout_split_improvement``; where it does not,
     ``heldout_split_untestable`` says why): it is named only if it gains in every check
-    that judges it."""
+    that judges it. ``clock``: the diagnosis' time limits (stage ``simulation_test``); a
+    candidate a limit leaves unfitted or unchecked is recorded there as not tested."""
+    clock = clock or Clock()
     settings = settings or OutputErrorSettings(segment_s=SEGMENT_S)
     if not settings.x_scale:
         settings = settings._replace(x_scale=noise_scale(np.asarray(problem.x)))
@@ -470,6 +474,10 @@ def simulation_test(
     limit = alpha / max(len(effects), 1)
     fits, scores = [], []
     for effect in applicable:
+        if clock.over("simulation_test"):
+            clock.untested("simulation_test", effect)
+            continue
+        clock.note(f"output-error fit of {effect}")
         # A friction law is always fitted from its grid's middle: at stops and breakaways
         # the motion is not linear in it, and its score there is no guide (measured: p = 1
         # on records where its fit gains LR > 100).
@@ -486,6 +494,10 @@ def simulation_test(
     )
     out = SimulationTest(base=base, fits=fits, chosen=None, scores=scores)
     for law in passing:
+        if clock.over("simulation_test"):
+            clock.untested("simulation_test", law.effect)
+            continue
+        clock.note(f"held-out check of {law.effect}")
         report = heldout_gain(problem, base, law, fraction, settings)
         if validation is not None:
             split = report

@@ -29,7 +29,8 @@ from fricjax.identify import IdentifySettings
 from fricjax.problem import build_problem
 
 ROOT = Path(__file__).resolve().parents[2]
-FAST = {"n_mc": 400, "max_terms": 2}
+# no time limit: what the diagnosis finds must not depend on the machine's load
+FAST = {"n_mc": 400, "max_terms": 2, "time_limit": float("inf")}
 
 #: one clearly visible instance of each effect on the 1 s paper twin (term, parameters)
 VISIBLE = {

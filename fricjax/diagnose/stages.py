@@ -1,0 +1,161 @@
+"""The diagnosis as named stages: their wall time, live progress events and hard time limits.
+
+A :class:`Clock` is handed down the diagnosis (:func:`~fricjax.diagnose.run.diagnose`,
+:func:`~fricjax.diagnose.select.forward_select`,
+:func:`~fricjax.diagnose.simulation_test.simulation_test`). Each stage is entered with
+:meth:`Clock.stage` (time charged to the innermost open stage, so nested stages are not
+counted twice); work that a limit may cut asks :meth:`Clock.over` first and, when the
+answer is yes, records what it leaves out with :meth:`Clock.skip`. A limit acts only
+when hit: below every limit the diagnosis runs exactly as without a clock.
+
+A limit is checked between units of work (one candidate's score test with its Monte
+Carlo calibration, one refit, one held-out check, one output-error fit, one map), so a
+stage overruns its limit by at most one unit.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+# name: what the stage does (the progress display and the report's timing table)
+STAGES: dict[str, str] = {
+    "base_fit": "base fit (search and refine the base model)",
+    "whitening": "noise model, whitening, GLS fit of the base",
+    "scores": "score tests of the candidates with their Monte Carlo calibration",
+    "refits": "refits of the candidates that score",
+    "heldout": "held-out checks (split, second recording, cross-validation)",
+    "locate": "residual maps with their Monte Carlo calibration",
+    "simulation_test": "simulation (output-error) test of the friction laws",
+    "report": "report, plots and models file",
+}
+# the stages whose work a limit can cut (the others are a single step the diagnosis needs)
+LIMITED = ("base_fit", "scores", "refits", "heldout", "locate", "simulation_test")
+
+
+@dataclass(frozen=True)
+class StageEvent:
+    """One progress event: ``stage`` (a key of :data:`STAGES`), what it is doing, and the
+    seconds since the diagnosis started."""
+
+    stage: str
+    detail: str
+    elapsed_s: float
+
+
+OnStage = Callable[[StageEvent], None]
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """Work left out at ``stage`` because a time limit was hit ``at_s`` seconds in."""
+
+    stage: str
+    what: str
+    at_s: float
+    limit: str  # which limit: "total" or the stage's own
+    effect: str = ""  # the candidate left untested, if the work was testing one
+
+
+@dataclass
+class Clock:
+    """Wall time per stage, progress events and the time limits of one diagnosis.
+
+    ``limits``: seconds per stage (keys of :data:`LIMITED`; a missing key is no limit);
+    ``total``: seconds for the whole diagnosis (``inf``: none); ``on_stage``: called with
+    every :class:`StageEvent`; ``now``: the clock [s] (a test may drive it)."""
+
+    limits: Mapping[str, float] = field(default_factory=dict)
+    total: float = math.inf
+    on_stage: OnStage | None = None
+    now: Callable[[], float] = time.perf_counter
+    spent: dict[str, float] = field(default_factory=dict)
+    skipped: list[Skipped] = field(default_factory=list)
+    _open: list[str] = field(default_factory=list)
+    _mark: float = 0.0
+    _start: float = math.nan
+
+    def __post_init__(self) -> None:
+        self._start = self._mark = self.now()
+
+    def elapsed(self) -> float:
+        """Seconds since the clock started."""
+        return self.now() - self._start
+
+    def _charge(self) -> None:
+        t = self.now()
+        if self._open:
+            name = self._open[-1]
+            self.spent[name] = self.spent.get(name, 0.0) + t - self._mark
+        self._mark = t
+
+    @contextmanager
+    def stage(self, name: str, detail: str = "") -> Iterator[None]:
+        """Time the block as stage ``name`` (nested: the outer stage pauses)."""
+        if name not in STAGES:
+            raise ValueError(f"unknown stage {name!r}")
+        self._charge()
+        self._open.append(name)
+        self.note(detail or STAGES[name])
+        try:
+            yield
+        finally:
+            self._charge()
+            self._open.pop()
+
+    def note(self, detail: str) -> None:
+        """Tell the progress display what the current stage is doing."""
+        if self.on_stage is not None:
+            stage = self._open[-1] if self._open else ""
+            self.on_stage(StageEvent(stage, detail, self.elapsed()))
+
+    def used(self, name: str) -> float:
+        """Seconds charged to stage ``name`` so far, the running part included."""
+        running = self.now() - self._mark if self._open and self._open[-1] == name else 0.0
+        return self.spent.get(name, 0.0) + running
+
+    def hit(self, name: str) -> str:
+        """Which limit stops more work at stage ``name``: ``"total"``, the stage's own
+        (``name``), or ``""`` (none hit)."""
+        if self.elapsed() > self.total:
+            return "total"
+        if self.used(name) > self.limits.get(name, math.inf):
+            return name
+        return ""
+
+    def over(self, name: str) -> bool:
+        """Whether a limit stops more work at stage ``name``."""
+        return bool(self.hit(name))
+
+    def skip(self, name: str, what: str, effect: str = "") -> None:
+        """Record ``what`` as left out at stage ``name`` for lack of time (``effect``: the
+        candidate it leaves untested)."""
+        item = Skipped(name, what, self.elapsed(), self.hit(name) or "total", effect)
+        self.skipped.append(item)
+        self.note(f"time limit: {what}")
+
+    def untested(self, name: str, effect: str) -> None:
+        """Record candidate ``effect`` as not tested at stage ``name`` (time limit)."""
+        self.skip(name, f"{effect}: not tested (time limit)", effect)
+
+    def not_tested(self) -> list[str]:
+        """The candidates a limit left untested, each once, in the order they were met."""
+        return list(dict.fromkeys(s.effect for s in self.skipped if s.effect))
+
+    def summary(self) -> dict[str, Any]:
+        """The ``timing`` section of diagnosis.json: seconds per stage (in
+        :data:`STAGES` order), the limits, and what was skipped."""
+        self._charge()
+        return {
+            "total_s": self.elapsed(),
+            "stages_s": {k: self.spent[k] for k in STAGES if k in self.spent},
+            "limits_s": {"total": self.total, **dict(self.limits)},
+            "skipped": [
+                {"stage": s.stage, "what": s.what, "at_s": s.at_s, "limit": s.limit}
+                for s in self.skipped
+            ],
+        }
