@@ -163,9 +163,9 @@ def _parse_param(
     expected = axis_unit(default.unit, axis)
     unit = str(entry.get("unit", expected))
     if not same_unit(expected, unit):
+        hint = "; [model].axis = 'rotary' takes rad, N·m, kg·m²" if axis.kind == "linear" else ""
         raise FricjaxError(
-            f"{loc}: wrong unit {unit!r}, expected {expected!r} ({axis.kind} axis"
-            + (", set [model].axis = 'rotary' for rad, N·m, kg·m²)" if axis.kind == "linear" else ")")
+            f"{loc}: wrong unit {unit!r}, expected {expected!r} ({axis.kind} axis{hint})"
         )
 
     def num(key: str) -> float:

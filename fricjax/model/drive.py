@@ -195,7 +195,8 @@ class MeasuredInput(Term):
     def __post_init__(self) -> None:
         if self.signal not in INPUT_SIGNALS:
             # TypeError: the config reports it as a bad option of the term
-            raise TypeError(f"signal must be one of {', '.join(INPUT_SIGNALS)}, got {self.signal!r}")
+            known = ", ".join(INPUT_SIGNALS)
+            raise TypeError(f"signal must be one of {known}, got {self.signal!r}")
 
     def parameters(self) -> tuple[Param, ...]:
         return (
