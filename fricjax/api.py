@@ -52,6 +52,75 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     return where_to
 
 
+#: The config a command uses without ``--config``: the seed paper's harmonic-drive model,
+#: right for the bundled twin and wrong for a rig whose drive or force is recorded.
+PAPER_CONFIG = Path("configs/paper.toml")
+
+
+def config_or_default(recording: str | Path | Recording, config: str | Path | None) -> Path:
+    """``config``, or :data:`PAPER_CONFIG` when none is given and the recording has no
+    measured input; a recording with ``/u`` or ``/F`` and no config is refused (the paper
+    model would ignore what was measured), naming ``fricjax init-config``."""
+    if config is not None:
+        return Path(config)
+    rec = recording if isinstance(recording, Recording) else read_recording(recording)
+    measured = [f"/{k}" for k in ("u", "F") if getattr(rec, k) is not None]
+    if measured:
+        name = rec.path or rec.name
+        raise FricjaxError(
+            f"--config: missing; {name} records {' and '.join(measured)}, which the default "
+            f"{PAPER_CONFIG} (the seed paper's 26-parameter harmonic-drive model) would ignore: "
+            f"write a starting config with `fricjax init-config {name} --out C.toml` and pass "
+            "--config C.toml"
+        )
+    return PAPER_CONFIG
+
+
+def init_config(
+    recording: str | Path,
+    out: str | Path,
+    *,
+    drive: str = "measured",
+    friction: str = "coulomb,viscous",
+    harmonics: int = 3,
+    mass: float | None = None,
+    axis: str | None = None,
+    force: bool = False,
+) -> tuple[str, Path]:
+    """``fricjax init-config``: a commented starting config from the recording's own scale
+    (:mod:`fricjax.scaffold`), written atomically to ``out``; returns (text, path)."""
+    from fricjax.scaffold import scaffold_config, write_scaffold
+
+    text = scaffold_config(
+        recording,
+        drive=drive,
+        friction=[f for f in friction.split(",") if f.strip()],
+        harmonics=harmonics,
+        mass=mass,
+        axis=axis,
+    )
+    return text, write_scaffold(out, text, force=force)
+
+
+def merge_sensor_file(
+    motion: str | Path,
+    sensor: str | Path,
+    out: str | Path,
+    *,
+    column: str = "F",
+    as_signal: str = "F",
+    u_unit: str = "",
+    mass: float | None = None,
+) -> tuple[Recording, Path]:
+    """``fricjax merge``: a second sensor at another rate resampled onto the motion's grid
+    (:mod:`fricjax.data.resample`), written as a recording."""
+    from fricjax.data.recording import write_recording
+    from fricjax.data.resample import merge_sensor
+
+    rec = merge_sensor(motion, sensor, column=column, as_signal=as_signal, u_unit=u_unit, mass=mass)
+    return rec, write_recording(rec, out)
+
+
 def load(
     recording: str | Path | Recording, config: str | Path | Config, *, mass: float | None = None
 ) -> tuple[Recording, Config, Problem]:

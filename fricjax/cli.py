@@ -23,6 +23,15 @@ app = typer.Typer(
 
 RecArg = Annotated[Path, typer.Argument(help="Recording (.h5 layout v1 or .csv)")]
 ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="Model config (TOML)")]
+DefaultConfigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        "-c",
+        help="Model config (TOML); default configs/paper.toml, refused for a recording "
+        "with a measured input /u or /F (write one with fricjax init-config)",
+    ),
+]
 MassOpt = Annotated[
     float | None, typer.Option("--mass", help="Moving mass [kg] (for CSV or to override)")
 ]
@@ -141,7 +150,7 @@ def _progress(label: str):
 @app.command()
 def identify(
     recording: RecArg,
-    config: ConfigOpt = Path("configs/paper.toml"),
+    config: DefaultConfigOpt = None,
     method: MethodOpt = None,
     chains: Annotated[int | None, typer.Option(help="Parallel chains (restarts)")] = None,
     seed: Annotated[int | None, typer.Option(help="Seed (same seed = same result)")] = None,
@@ -170,9 +179,10 @@ def identify(
     quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
 ) -> None:
     """Identify the config's parameters on a recording (annealing chains + refiner)."""
-    from fricjax.api import enable_compilation_cache, identify_recording
+    from fricjax.api import config_or_default, enable_compilation_cache, identify_recording
     from fricjax.report.show import run_summary
 
+    config = config_or_default(recording, config)
     enable_compilation_cache()
 
     overrides = {
@@ -217,7 +227,7 @@ def show(
 @app.command()
 def sweep(
     recording: RecArg,
-    config: ConfigOpt = Path("configs/paper.toml"),
+    config: DefaultConfigOpt = None,
     methods: Annotated[str, typer.Option(help="Comma-separated methods")] = "csaa,dsaa,rdsa",
     schedules: Annotated[str, typer.Option(help="Comma-separated schedules")] = "geometric",
     alphas: Annotated[str, typer.Option(help="Comma-separated cooling factors")] = "0.95",
@@ -229,7 +239,9 @@ def sweep(
     mass: MassOpt = None,
 ) -> None:
     """Every method x schedule x alpha x restart; one file; a table ranked by final cost."""
-    from fricjax.api import sweep_recording
+    from fricjax.api import config_or_default, sweep_recording
+
+    config = config_or_default(recording, config)
 
     def parse(text: str, kind: type) -> list:
         try:
@@ -339,7 +351,7 @@ def simulate(
 @app.command()
 def diagnose(
     recording: RecArg,
-    config: ConfigOpt = Path("configs/paper.toml"),
+    config: DefaultConfigOpt = None,
     out: Annotated[Path, typer.Option(help="Output folder")] = Path("diagnosis"),
     validation: Annotated[
         Path | None, typer.Option(help="Second recording for the held-out check")
@@ -349,9 +361,10 @@ def diagnose(
     mass: MassOpt = None,
 ) -> None:
     """Locate the mismatch, name the physics left out, model it, show the fit improve."""
-    from fricjax.api import diagnose_recording, enable_compilation_cache
+    from fricjax.api import config_or_default, diagnose_recording, enable_compilation_cache
     from fricjax.report.tables import fmt
 
+    config = config_or_default(recording, config)
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead
     enable_compilation_cache()
@@ -374,6 +387,61 @@ def diagnose(
         f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}"
     )
     typer.echo(f"report: {paths['report']}")
+
+
+@app.command("init-config")
+def init_config_cmd(
+    recording: RecArg,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Config to write (.toml)")],
+    drive: Annotated[
+        str,
+        typer.Option(help="measured (measured_input on /F, else /u) | harmonic (harmonic_drive)"),
+    ] = "measured",
+    friction: Annotated[
+        str, typer.Option(help="Comma-separated: coulomb (required), viscous, stribeck")
+    ] = "coulomb,viscous",
+    harmonics: Annotated[int, typer.Option(help="Harmonics of a harmonic drive")] = 3,
+    axis: Annotated[
+        str | None, typer.Option(help="linear | rotary (default: the recording's attr)")
+    ] = None,
+    mass: MassOpt = None,
+    force: Annotated[bool, typer.Option(help="Overwrite an existing --out")] = False,
+) -> None:
+    """Write a commented starting config with bounds from the recording's own scale."""
+    from fricjax.api import init_config
+
+    _, path = init_config(
+        recording,
+        out,
+        drive=drive,
+        friction=friction,
+        harmonics=harmonics,
+        mass=mass,
+        axis=axis,
+        force=force,
+    )
+    typer.echo(f"wrote {path}; next: fricjax identify {recording} --config {path}")
+
+
+@app.command()
+def merge(
+    motion: Annotated[Path, typer.Argument(help="Motion recording (.h5 or .csv with t,x)")],
+    sensor: Annotated[Path, typer.Argument(help="Sensor CSV with a t column, any rate")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Merged recording (.h5 or .csv)")],
+    column: Annotated[str, typer.Option(help="Sensor column to bring over")] = "F",
+    as_signal: Annotated[
+        str, typer.Option("--as", help="F (force on the body, N) or u (drive input)")
+    ] = "F",
+    u_unit: Annotated[str, typer.Option(help="Unit of u when --as u")] = "",
+    mass: MassOpt = None,
+) -> None:
+    """Resample a second sensor onto the motion's time grid (anti-alias + cubic spline)."""
+    from fricjax.api import merge_sensor_file
+
+    rec, path = merge_sensor_file(
+        motion, sensor, out, column=column, as_signal=as_signal, u_unit=u_unit, mass=mass
+    )
+    typer.echo(f"wrote {path}: {rec.n} samples; {rec.notes}")
 
 
 bench_app = typer.Typer(
