@@ -39,6 +39,95 @@ def parameter_table(run: RunResult) -> str:
     return format_table(rows, ("parameter", "unit", "value", "σ", "σ/|value|", "flags"))
 
 
+#: A parameter is loose when its ±2σ interval (95 %) is wider than ±half its scale, i.e.
+#: σ > scale/4: the record cannot tell the value from half or 1.5 times it. Scale: |value|,
+#: or half the box width when the box holds 0 (an offset or a phase may sit near 0).
+LOOSE_SIGMA = 0.25
+#: Pairs with |ρ| above this are reported as traded against each other: along their
+#: combination the cost changes 1/(1 − ρ²) ≥ 50 times less than along each alone.
+STRONG_CORRELATION = 0.99
+#: Friction parameters: their cure is excitation in velocity, not more drive periods.
+_FRICTION = ("Fc", "Fs", "vs", "delta", "Fv")
+
+
+def undetermined(run: RunResult) -> dict[str, str]:
+    """Parameters the record does not determine, each with the reason in words: on a bound
+    of the box, σ above :data:`LOOSE_SIGMA` of its scale, or not determined at all."""
+    out: dict[str, str] = {}
+    for i, name in enumerate(run.names):
+        value, sd = float(run.value[i]), float(run.std[i])
+        lo, hi, unit = float(run.lower[i]), float(run.upper[i]), run.units[i]
+        reasons = []
+        tol = 1e-6 * (hi - lo)
+        if value <= lo + tol or value >= hi - tol:
+            side = "lower" if value <= lo + tol else "upper"
+            reasons.append(f"on its {side} bound ({fmt(value, 4)} {unit}): the box set it")
+        scale = 0.5 * (hi - lo) if lo < 0.0 < hi else abs(value)
+        if not np.isfinite(sd):
+            reasons.append("not determined at all (no curvature of the cost along it)")
+        elif sd > LOOSE_SIGMA * scale:
+            reasons.append(f"±2σ = ±{fmt(2 * sd, 3)} {unit}, {100 * 2 * sd / scale:.0f} % of it")
+        if reasons:
+            out[name] = "; ".join(reasons)
+    return out
+
+
+def correlated_pairs(run: RunResult) -> list[tuple[str, str, float]]:
+    """Parameter pairs with |ρ| > :data:`STRONG_CORRELATION`, strongest first."""
+    corr = np.asarray(run.corr)
+    pairs = [
+        (run.names[i], run.names[j], float(corr[i, j]))
+        for i in range(len(run.names))
+        for j in range(i + 1, len(run.names))
+        if np.isfinite(corr[i, j]) and abs(corr[i, j]) > STRONG_CORRELATION
+    ]
+    return sorted(pairs, key=lambda p: -abs(p[2]))
+
+
+def determination(run: RunResult) -> str:
+    """Plain words: which parameters the record does not determine, and what would fix it."""
+    loose = undetermined(run)
+    pairs = correlated_pairs(run)
+    if not loose and not pairs:
+        return (
+            f"Every parameter is determined by this record (±2σ within ±{200 * LOOSE_SIGMA:.0f} %"
+            " of its value, none on a bound)."
+        )
+    lines = []
+    if loose:
+        lines.append(
+            f"This record does NOT determine {len(loose)} of {len(run.names)} parameters: "
+            f"{', '.join(loose)}. Their values come from the box or the noise, not from the "
+            "physics; do not read them as measured."
+        )
+        width = max(len(n) for n in loose)
+        lines += [f"  {n:<{width}}  {why}" for n, why in loose.items()]
+    if pairs:
+        shown = ", ".join(f"{a}–{b} (ρ = {r:.3f})" for a, b, r in pairs[:8])
+        more = f" and {len(pairs) - 8} more" if len(pairs) > 8 else ""
+        lines.append(
+            f"Traded against each other (|ρ| > {STRONG_CORRELATION}): {shown}{more}; the record "
+            "fixes a combination of each pair, not the two apart."
+        )
+    names = set(loose) | {n for a, b, _ in pairs for n in (a, b)}
+    fixes = ["a longer record (σ falls as 1/√duration)"]
+    if names & set(_FRICTION):
+        fixes.append(
+            "richer excitation for the friction terms: more velocity reversals, slow and fast "
+            "sliding both"
+        )
+    if names - set(_FRICTION):
+        fixes.append("more periods of the drive, or an input with more frequencies")
+    fixes.append(
+        "fix a parameter known from elsewhere in the config ({ value = ... }), which also "
+        "frees the ones traded against it"
+    )
+    if any("bound" in why for why in loose.values()):
+        fixes.append("widen a box whose bound is not physical")
+    lines.append("What would fix it: " + "; ".join(fixes) + ".")
+    return "\n".join(lines)
+
+
 def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
     a = run.attrs
     if str(a.get("objective", "")).startswith("output error"):
@@ -75,10 +164,7 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
             ("interrupted", str(a.get("interrupted", False))),
         ]
     )
-    parts = [head, parameter_table(run)]
-    flagged = [f"{n}: {f}" for n, f in zip(run.names, run.flags, strict=True) if f]
-    if flagged:
-        parts.append("Not pinned down by this recording:\n  " + "\n  ".join(flagged))
+    parts = [head, parameter_table(run), determination(run)]
     if len(run.minima_cost):
         rows = [
             (str(i + 1), fmt(float(c), 7), str(int(k)))
