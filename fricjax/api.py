@@ -76,6 +76,26 @@ def config_or_default(recording: str | Path | Recording, config: str | Path | No
     return PAPER_CONFIG
 
 
+def scale_warnings(
+    recording: str | Path, config: str | Path | Config, *, mass: float | None = None
+) -> list[str]:
+    """Lines saying which unit of the recording looks wrong (:mod:`fricjax.data.scale`),
+    read from the record preprocessed as ``config`` says; [] when the scale is plausible."""
+    from fricjax.data.scale import unit_warnings
+    from fricjax.problem import input_signal
+
+    rec, cfg, problem = load(recording, config, mass=mass)
+    force = None
+    if input_signal(cfg.model) == "F" or (
+        input_signal(cfg.model) == "u" and rec.u_unit == cfg.axis.force
+    ):
+        force = problem.u  # a force on the body, filtered like m·a
+    elif rec.F is not None:
+        force = rec.F
+    m = float(problem.spec["mass"].init) if "mass" in problem.spec else None
+    return unit_warnings(problem.x, problem.v, problem.a, m, cfg.axis, force=force)
+
+
 def init_config(
     recording: str | Path,
     out: str | Path,
@@ -139,9 +159,12 @@ def inspect_recording(
 ) -> tuple[dict[str, str], Path]:
     """Summary of a recording and a PNG of x, v, a and m·a (preprocessed as configured)."""
     from fricjax.report.plots import plot_signals
+    from fricjax.units import axis_units
 
     rec = read_recording(recording, mass=mass)
-    table = load_config(config).table("preprocess") if config else {}
+    cfg = load_config(config) if config else None
+    table = cfg.table("preprocess") if cfg else {}
+    units = cfg.axis if cfg else axis_units(rec.axis or "linear")
     settings = PreprocessSettings.from_dict(table, source=str(config or "defaults"))
     d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F, source=str(recording))
     m = rec.mass
@@ -153,10 +176,11 @@ def inspect_recording(
         "samples": str(rec.n),
         "rate [Hz]": f"{1.0 / rec.dt:.6g}",
         "duration [s]": f"{rec.duration:.6g}",
-        "mass [kg]": "missing" if m is None else f"{m:g}",
-        "x range [m]": f"{d.x.min():.4g} .. {d.x.max():.4g}",
-        "v range [m/s]": f"{d.v.min():.4g} .. {d.v.max():.4g}",
-        "a range [m/s²]": f"{d.a.min():.4g} .. {d.a.max():.4g}",
+        "axis": units.kind,
+        f"{units.inertia_word} [{units.inertia}]": "missing" if m is None else f"{m:g}",
+        f"x range [{units.position}]": f"{d.x.min():.4g} .. {d.x.max():.4g}",
+        f"v range [{units.velocity}]": f"{d.v.min():.4g} .. {d.v.max():.4g}",
+        f"a range [{units.acceleration}]": f"{d.a.min():.4g} .. {d.a.max():.4g}",
         "velocity reversals": str(int(np.sum(np.diff(np.sign(d.v[np.abs(d.v) > 1e-9])) != 0))),
         "input u": "none"
         if rec.u is None
@@ -167,9 +191,13 @@ def inspect_recording(
         "sha256": rec.sha256()[:16],
     }
     if m is not None:
-        summary["m·a range [N]"] = f"{force.min():.4g} .. {force.max():.4g}"
+        summary[f"m·a range [{units.force}]"] = f"{force.min():.4g} .. {force.max():.4g}"
+    if rec.F is not None:
+        summary[f"measured F [{units.force}]"] = f"{rec.F.min():.4g} .. {rec.F.max():.4g}"
     out = Path(png) if png else Path(recording).with_suffix(".png")
-    fig = plot_signals(d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out)
+    fig = plot_signals(
+        d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out, units=units
+    )
     return summary, fig
 
 
@@ -220,7 +248,7 @@ def cost_at(
     mass: float | None = None,
 ) -> dict[str, Any]:
     """Cost (seed eq. 11) and EMS at given parameters; default: a twin's generating truth."""
-    _, _, problem = load(recording, config, mass=mass)
+    _, cfg, problem = load(recording, config, mass=mass)
     if params is not None:
         named, source = read_params(params), str(params)
         check_known(named, problem.spec.names, source)
@@ -241,6 +269,7 @@ def cost_at(
     # a twin's truth also holds generator-only entries (noise_std, seed, model): skipped
     theta = problem.theta({k: v for k, v in named.items() if k in problem.spec})
     return {
+        "axis": cfg.axis,
         "cost": problem.cost(theta),
         "ems": problem.ems(theta),
         "n": problem.n,
@@ -290,6 +319,7 @@ def identify_recording(
     # what the user waits for, so its programs are compiled for compile speed
     settings = dataclasses.replace(settings, fast_compile=True)
     run = identify(problem, settings, on_level=on_level)
+    run.attrs["axis"] = cfg.axis.kind  # labels of the summary and of show (fricjax.units)
     path = (
         Path(out)
         if out
@@ -364,6 +394,7 @@ def sweep_recording(
                         if on_run:
                             on_run(label)
                         runs.append(identify(problem, settings, label=label))
+                        runs[-1].attrs["axis"] = cfg.axis.kind
                         write_results(ResultsFile(runs=runs, attrs=attrs), path)
     except KeyboardInterrupt:
         if not runs:

@@ -117,14 +117,23 @@ def cost(
 
     report = cost_at(recording, config, params=params, mass=mass)
     typer.echo(f"parameters: {report['source']}")
+    units = report["axis"]
     _echo_table(
         [
-            ("cost [N²]", f"{report['cost']:.6g}"),
-            ("EMS [N²]", f"{report['ems']:.6g}"),
-            ("RMS residual [N]", f"{report['ems'] ** 0.5:.6g}"),
+            (f"cost [{units.force_sq}]", f"{report['cost']:.6g}"),
+            (f"EMS [{units.force_sq}]", f"{report['ems']:.6g}"),
+            (f"RMS residual [{units.force}]", f"{report['ems'] ** 0.5:.6g}"),
             ("samples", str(report["n"])),
         ]
     )
+
+
+def _warn_scale(recording: Path, config: Path, mass: float | None) -> None:
+    """Print a ``warning:`` line on stderr for each implausible unit of the recording."""
+    from fricjax.api import scale_warnings
+
+    for line in scale_warnings(recording, config, mass=mass):
+        typer.echo(f"warning: {line}", err=True)
 
 
 MethodOpt = Annotated[
@@ -183,6 +192,7 @@ def identify(
     from fricjax.report.show import run_summary
 
     config = config_or_default(recording, config)
+    _warn_scale(recording, config, mass)
     enable_compilation_cache()
 
     overrides = {
@@ -365,6 +375,7 @@ def diagnose(
     from fricjax.report.tables import fmt
 
     config = config_or_default(recording, config)
+    _warn_scale(recording, config, mass)
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead
     enable_compilation_cache()

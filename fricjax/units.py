@@ -58,6 +58,16 @@ class AxisUnits:
         inertia, viscous, force_sq."""
         return f"{symbol} [{getattr(self, quantity)}]"
 
+    def signal_units(self) -> dict[str, str]:
+        """Unit of each signal ``fricjax simulate`` compares (x, v, a, force, actuation)."""
+        return {
+            "x": self.position,
+            "v": self.velocity,
+            "a": self.acceleration,
+            "force": self.force,
+            "actuation": self.force,
+        }
+
     def period(self, length: float) -> str:
         """A spatial period in words: ``"6.3 mm of travel"`` or
         ``"6.28 rad (once per revolution)"``."""
