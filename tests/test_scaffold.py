@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-
 import tomllib
 from pathlib import Path
 
@@ -56,7 +55,7 @@ def test_scaffolded_config_identifies_a_coulomb_viscous_axis_within_2_percent(
 ) -> None:
     text, path = init_config(axis_file, tmp_path / "c.toml")
     assert path.read_text() == text
-    rec, cfg, problem = load(axis_file, path)
+    _, cfg, problem = load(axis_file, path)
     # every bound contains the truth: the scale reasoning does not cut the answer off
     for name in ("offset", "Fc", "Fv"):
         q = cfg.spec[name]
