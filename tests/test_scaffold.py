@@ -114,3 +114,57 @@ def test_missing_config_is_refused_for_a_measured_recording(
     assert "/F" in str(err.value) and "26-parameter" in str(err.value)
     assert config_or_default(twin_path, None).name == "paper.toml"  # no input: the paper model
     assert config_or_default(axis_file, "mine.toml") == Path("mine.toml")
+
+
+def test_rotary_axis_is_carried_to_every_label(tmp_path: Path) -> None:
+    """A rotary load-cell axis: inspect, identify's summary and its tables say rad, N·m,
+    kg·m² and (N·m)², never m or N."""
+    from fricjax.api import inspect_recording
+    from fricjax.report.show import run_summary
+
+    path = load_cell_axis(tmp_path, axis="rotary")
+    summary, fig = inspect_recording(path, png=tmp_path / "r.png")
+    assert summary["axis"] == "rotary"
+    assert {"moment of inertia [kg·m²]", "x range [rad]", "v range [rad/s]"} <= set(summary)
+    assert "m·a range [N·m]" in summary and "measured F [N·m]" in summary
+    assert not any(k.endswith(("[m]", "[m/s]", "[N]", "[kg]")) for k in summary)
+    text, cfg_path = init_config(path, tmp_path / "r.toml")
+    _, cfg, problem = load(path, cfg_path)
+    assert problem.spec["mass"].unit == "kg·m²"
+    settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
+    run = identify(problem, dataclasses.replace(settings, fast_compile=True))
+    run.attrs["axis"] = cfg.axis.kind  # as identify_recording stores it
+    shown = run_summary(run)
+    assert "EMS [(N·m)²]" in shown and "N·m·s/rad" in shown
+    assert "[N²]" not in shown and "N*s/m" not in shown
+    # the same physics in other units: the same numbers
+    assert abs(run.params["Fc"] / TRUTH["Fc"] - 1) < 0.02
+
+
+def test_a_linear_config_refuses_rotary_units_and_a_mismatched_recording(tmp_path: Path) -> None:
+    raw = tomllib.loads(scaffold_config(load_cell_axis(tmp_path, axis="rotary")))
+    del raw["model"]["axis"]
+    with pytest.raises(FricjaxError, match=r"wrong unit 'N·m.*axis = 'rotary' takes"):
+        parse_config(raw)
+    path = load_cell_axis(tmp_path, axis="rotary")
+    with pytest.raises(FricjaxError, match="recording is 'rotary', --axis 'linear'"):
+        scaffold_config(path, axis="linear")
+
+
+def test_cli_init_config_then_identify_without_config_exits_2(axis_file: Path, tmp_path: Path):
+    import subprocess
+    import sys
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        cmd = [sys.executable, "-m", "fricjax.cli", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    out = run("identify", str(axis_file))
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "fricjax init-config" in lines[0]
+    cfg = tmp_path / "c.toml"
+    made = run("init-config", str(axis_file), "--out", str(cfg), "--friction", "coulomb")
+    assert made.returncode == 0, made.stderr
+    assert 'Fv = { unit = "N·s/m", value = 0.0 }' in cfg.read_text()
+    again = run("init-config", str(axis_file), "--out", str(cfg))
+    assert again.returncode == 2 and "exists" in again.stderr
