@@ -123,12 +123,12 @@ def test_rotary_axis_is_carried_to_every_label(tmp_path: Path) -> None:
     from fricjax.report.show import run_summary
 
     path = load_cell_axis(tmp_path, axis="rotary")
-    summary, fig = inspect_recording(path, png=tmp_path / "r.png")
+    summary, _ = inspect_recording(path, png=tmp_path / "r.png")
     assert summary["axis"] == "rotary"
     assert {"moment of inertia [kg·m²]", "x range [rad]", "v range [rad/s]"} <= set(summary)
     assert "m·a range [N·m]" in summary and "measured F [N·m]" in summary
     assert not any(k.endswith(("[m]", "[m/s]", "[N]", "[kg]")) for k in summary)
-    text, cfg_path = init_config(path, tmp_path / "r.toml")
+    _, cfg_path = init_config(path, tmp_path / "r.toml")
     _, cfg, problem = load(path, cfg_path)
     assert problem.spec["mass"].unit == "kg·m²"
     settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
