@@ -58,7 +58,8 @@ def test_merge_writes_f_on_the_motion_grid_and_states_the_method(tmp_path: Path)
     )
     t_s = np.arange(4000) / 2000.0
     sensor = tmp_path / "load.csv"
-    sensor.write_text("t,F\n" + "\n".join(f"{a:.17g},{b:.17g}" for a, b in zip(t_s, band(t_s), strict=True)))
+    rows = (f"{a:.17g},{b:.17g}" for a, b in zip(t_s, band(t_s), strict=True))
+    sensor.write_text("t,F\n" + "\n".join(rows))
     merged = merge_sensor(motion, sensor)
     path = write_recording(merged, tmp_path / "rec.h5")
     back = read_recording(path)

@@ -14,8 +14,10 @@ OMEGA = 2 * np.pi * 0.5
 def slide(scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """x, v, a of a 0.2 m stroke at 0.5 Hz (peak 0.31 m/s), x multiplied by ``scale``."""
     x = 0.1 * np.sin(OMEGA * T)
-    return scale * x, scale * 0.1 * OMEGA * np.cos(OMEGA * T), -scale * 0.1 * OMEGA**2 * np.sin(
-        OMEGA * T
+    return (
+        scale * x,
+        scale * 0.1 * OMEGA * np.cos(OMEGA * T),
+        -scale * 0.1 * OMEGA**2 * np.sin(OMEGA * T),
     )
 
 
