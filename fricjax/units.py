@@ -69,7 +69,7 @@ class AxisUnits:
         }
 
     def period(self, length: float) -> str:
-        """A spatial period in words: ``"6.3 mm of travel"`` or
+        """A spatial period in words: ``"0.0063 m of travel"`` or
         ``"6.28 rad (once per revolution)"``."""
         if self.kind == "rotary":
             per_rev = 2.0 * math.pi / length if length > 0 else math.inf
