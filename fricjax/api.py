@@ -56,6 +56,95 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     return where_to
 
 
+#: The config a command uses without ``--config``: the seed paper's harmonic-drive model,
+#: right for the bundled twin and wrong for a rig whose drive or force is recorded.
+PAPER_CONFIG = Path("configs/paper.toml")
+
+
+def config_or_default(recording: str | Path | Recording, config: str | Path | None) -> Path:
+    """``config``, or :data:`PAPER_CONFIG` when none is given and the recording has no
+    measured input; a recording with ``/u`` or ``/F`` and no config is refused (the paper
+    model would ignore what was measured), naming ``fricjax init-config``."""
+    if config is not None:
+        return Path(config)
+    rec = recording if isinstance(recording, Recording) else read_recording(recording)
+    measured = [f"/{k}" for k in ("u", "F") if getattr(rec, k) is not None]
+    if measured:
+        name = rec.path or rec.name
+        raise FricjaxError(
+            f"--config: missing; {name} records {' and '.join(measured)}, which the default "
+            f"{PAPER_CONFIG} (the seed paper's 26-parameter harmonic-drive model) would ignore: "
+            f"write a starting config with `fricjax init-config {name} --out C.toml` and pass "
+            "--config C.toml"
+        )
+    return PAPER_CONFIG
+
+
+def scale_warnings(
+    recording: str | Path, config: str | Path | Config, *, mass: float | None = None
+) -> list[str]:
+    """Lines saying which unit of the recording looks wrong (:mod:`fricjax.data.scale`),
+    read from the record preprocessed as ``config`` says; [] when the scale is plausible."""
+    from fricjax.data.scale import unit_warnings
+    from fricjax.problem import input_signal
+
+    rec, cfg, problem = load(recording, config, mass=mass)
+    force = None
+    if input_signal(cfg.model) == "F" or (
+        input_signal(cfg.model) == "u" and rec.u_unit == cfg.axis.force
+    ):
+        force = problem.u  # a force on the body, filtered like m·a
+    elif rec.F is not None:
+        force = rec.F
+    m = float(problem.spec["mass"].init) if "mass" in problem.spec else None
+    return unit_warnings(problem.x, problem.v, problem.a, m, cfg.axis, force=force)
+
+
+def init_config(
+    recording: str | Path,
+    out: str | Path,
+    *,
+    drive: str = "measured",
+    friction: str = "coulomb,viscous",
+    harmonics: int = 3,
+    mass: float | None = None,
+    axis: str | None = None,
+    force: bool = False,
+) -> tuple[str, Path]:
+    """``fricjax init-config``: a commented starting config from the recording's own scale
+    (:mod:`fricjax.scaffold`), written atomically to ``out``; returns (text, path)."""
+    from fricjax.scaffold import scaffold_config, write_scaffold
+
+    text = scaffold_config(
+        recording,
+        drive=drive,
+        friction=[f for f in friction.split(",") if f.strip()],
+        harmonics=harmonics,
+        mass=mass,
+        axis=axis,
+    )
+    return text, write_scaffold(out, text, force=force)
+
+
+def merge_sensor_file(
+    motion: str | Path,
+    sensor: str | Path,
+    out: str | Path,
+    *,
+    column: str = "F",
+    as_signal: str = "F",
+    u_unit: str = "",
+    mass: float | None = None,
+) -> tuple[Recording, Path]:
+    """``fricjax merge``: a second sensor at another rate resampled onto the motion's grid
+    (:mod:`fricjax.data.resample`), written as a recording."""
+    from fricjax.data.recording import write_recording
+    from fricjax.data.resample import merge_sensor
+
+    rec = merge_sensor(motion, sensor, column=column, as_signal=as_signal, u_unit=u_unit, mass=mass)
+    return rec, write_recording(rec, out)
+
+
 def load(
     recording: str | Path | Recording, config: str | Path | Config, *, mass: float | None = None
 ) -> tuple[Recording, Config, Problem]:
@@ -74,9 +163,12 @@ def inspect_recording(
 ) -> tuple[dict[str, str], Path]:
     """Summary of a recording and a PNG of x, v, a and m·a (preprocessed as configured)."""
     from fricjax.report.plots import plot_signals
+    from fricjax.units import axis_units
 
     rec = read_recording(recording, mass=mass)
-    table = load_config(config).table("preprocess") if config else {}
+    cfg = load_config(config) if config else None
+    table = cfg.table("preprocess") if cfg else {}
+    units = cfg.axis if cfg else axis_units(rec.axis or "linear")
     settings = PreprocessSettings.from_dict(table, source=str(config or "defaults"))
     d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F, source=str(recording))
     m = rec.mass
@@ -88,10 +180,11 @@ def inspect_recording(
         "samples": str(rec.n),
         "rate [Hz]": f"{1.0 / rec.dt:.6g}",
         "duration [s]": f"{rec.duration:.6g}",
-        "mass [kg]": "missing" if m is None else f"{m:g}",
-        "x range [m]": f"{d.x.min():.4g} .. {d.x.max():.4g}",
-        "v range [m/s]": f"{d.v.min():.4g} .. {d.v.max():.4g}",
-        "a range [m/s²]": f"{d.a.min():.4g} .. {d.a.max():.4g}",
+        "axis": units.kind,
+        f"{units.inertia_word} [{units.inertia}]": "missing" if m is None else f"{m:g}",
+        f"x range [{units.position}]": f"{d.x.min():.4g} .. {d.x.max():.4g}",
+        f"v range [{units.velocity}]": f"{d.v.min():.4g} .. {d.v.max():.4g}",
+        f"a range [{units.acceleration}]": f"{d.a.min():.4g} .. {d.a.max():.4g}",
         "velocity reversals": str(int(np.sum(np.diff(np.sign(d.v[np.abs(d.v) > 1e-9])) != 0))),
         "input u": "none"
         if rec.u is None
@@ -102,15 +195,19 @@ def inspect_recording(
         "sha256": rec.sha256()[:16],
     }
     if m is not None:
-        summary["m·a range [N]"] = f"{force.min():.4g} .. {force.max():.4g}"
-    # the recording's own noise floor, independent of any model (fricjax.data.noise)
-    summary["x noise"] = estimate_noise(rec.x).describe("m")
+        summary[f"m·a range [{units.force}]"] = f"{force.min():.4g} .. {force.max():.4g}"
     if rec.F is not None:
-        summary["F noise"] = estimate_noise(rec.F).describe("N")
+        summary[f"measured F [{units.force}]"] = f"{rec.F.min():.4g} .. {rec.F.max():.4g}"
+    # the recording's own noise floor, independent of any model (fricjax.data.noise)
+    summary["x noise"] = estimate_noise(rec.x).describe(units.position)
+    if rec.F is not None:
+        summary["F noise"] = estimate_noise(rec.F).describe(units.force)
     if rec.u is not None:
         summary["u noise"] = estimate_noise(rec.u).describe(rec.u_unit or "(u unit)")
     out = Path(png) if png else Path(recording).with_suffix(".png")
-    fig = plot_signals(d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out)
+    fig = plot_signals(
+        d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out, units=units
+    )
     return summary, fig
 
 
@@ -161,7 +258,7 @@ def cost_at(
     mass: float | None = None,
 ) -> dict[str, Any]:
     """Cost (seed eq. 11) and EMS at given parameters; default: a twin's generating truth."""
-    _, _, problem = load(recording, config, mass=mass)
+    _, cfg, problem = load(recording, config, mass=mass)
     if params is not None:
         named, source = read_params(params), str(params)
         check_known(named, problem.spec.names, source)
@@ -182,6 +279,7 @@ def cost_at(
     # a twin's truth also holds generator-only entries (noise_std, seed, model): skipped
     theta = problem.theta({k: v for k, v in named.items() if k in problem.spec})
     return {
+        "axis": cfg.axis,
         "cost": problem.cost(theta),
         "ems": problem.ems(theta),
         "n": problem.n,
@@ -231,6 +329,7 @@ def identify_recording(
     # what the user waits for, so its programs are compiled for compile speed
     settings = dataclasses.replace(settings, fast_compile=True)
     run = identify(problem, settings, on_level=on_level)
+    run.attrs["axis"] = cfg.axis.kind  # labels of the summary and of show (fricjax.units)
     path = (
         Path(out)
         if out
@@ -305,6 +404,7 @@ def sweep_recording(
                         if on_run:
                             on_run(label)
                         runs.append(identify(problem, settings, label=label))
+                        runs[-1].attrs["axis"] = cfg.axis.kind
                         write_results(ResultsFile(runs=runs, attrs=attrs), path)
     except KeyboardInterrupt:
         if not runs:

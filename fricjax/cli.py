@@ -25,6 +25,15 @@ app = typer.Typer(
 
 RecArg = Annotated[Path, typer.Argument(help="Recording (.h5 layout v1 or .csv)")]
 ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="Model config (TOML)")]
+DefaultConfigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        "-c",
+        help="Model config (TOML); default configs/paper.toml, refused for a recording "
+        "with a measured input /u or /F (write one with fricjax init-config)",
+    ),
+]
 MassOpt = Annotated[
     float | None, typer.Option("--mass", help="Moving mass [kg] (for CSV or to override)")
 ]
@@ -110,14 +119,23 @@ def cost(
 
     report = cost_at(recording, config, params=params, mass=mass)
     typer.echo(f"parameters: {report['source']}")
+    units = report["axis"]
     _echo_table(
         [
-            ("cost [N²]", f"{report['cost']:.6g}"),
-            ("EMS [N²]", f"{report['ems']:.6g}"),
-            ("RMS residual [N]", f"{report['ems'] ** 0.5:.6g}"),
+            (f"cost [{units.force_sq}]", f"{report['cost']:.6g}"),
+            (f"EMS [{units.force_sq}]", f"{report['ems']:.6g}"),
+            (f"RMS residual [{units.force}]", f"{report['ems'] ** 0.5:.6g}"),
             ("samples", str(report["n"])),
         ]
     )
+
+
+def _warn_scale(recording: Path, config: Path, mass: float | None) -> None:
+    """Print a ``warning:`` line on stderr for each implausible unit of the recording."""
+    from fricjax.api import scale_warnings
+
+    for line in scale_warnings(recording, config, mass=mass):
+        typer.echo(f"warning: {line}", err=True)
 
 
 MethodOpt = Annotated[
@@ -143,7 +161,7 @@ def _progress(label: str):
 @app.command()
 def identify(
     recording: RecArg,
-    config: ConfigOpt = Path("configs/paper.toml"),
+    config: DefaultConfigOpt = None,
     method: MethodOpt = None,
     chains: Annotated[int | None, typer.Option(help="Parallel chains (restarts)")] = None,
     seed: Annotated[int | None, typer.Option(help="Seed (same seed = same result)")] = None,
@@ -172,9 +190,11 @@ def identify(
     quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
 ) -> None:
     """Identify the config's parameters on a recording (annealing chains + refiner)."""
-    from fricjax.api import enable_compilation_cache, identify_recording
+    from fricjax.api import config_or_default, enable_compilation_cache, identify_recording
     from fricjax.report.show import run_summary
 
+    config = config_or_default(recording, config)
+    _warn_scale(recording, config, mass)
     enable_compilation_cache()
 
     overrides = {
@@ -219,7 +239,7 @@ def show(
 @app.command()
 def sweep(
     recording: RecArg,
-    config: ConfigOpt = Path("configs/paper.toml"),
+    config: DefaultConfigOpt = None,
     methods: Annotated[str, typer.Option(help="Comma-separated methods")] = "csaa,dsaa,rdsa",
     schedules: Annotated[str, typer.Option(help="Comma-separated schedules")] = "geometric",
     alphas: Annotated[str, typer.Option(help="Comma-separated cooling factors")] = "0.95",
@@ -231,7 +251,9 @@ def sweep(
     mass: MassOpt = None,
 ) -> None:
     """Every method x schedule x alpha x restart; one file; a table ranked by final cost."""
-    from fricjax.api import sweep_recording
+    from fricjax.api import config_or_default, sweep_recording
+
+    config = config_or_default(recording, config)
 
     def parse(text: str, kind: type) -> list:
         try:
@@ -369,7 +391,7 @@ def _stage_progress(quiet: bool, console: Any = None) -> Iterator[Any]:
 @app.command()
 def diagnose(
     recording: RecArg,
-    config: ConfigOpt = Path("configs/paper.toml"),
+    config: DefaultConfigOpt = None,
     out: Annotated[Path, typer.Option(help="Output folder")] = Path("diagnosis"),
     validation: Annotated[
         Path | None, typer.Option(help="Second recording for the held-out check")
@@ -384,9 +406,11 @@ def diagnose(
     mass: MassOpt = None,
 ) -> None:
     """Locate the mismatch, name the physics left out, model it, show the fit improve."""
-    from fricjax.api import diagnose_recording, enable_compilation_cache
+    from fricjax.api import config_or_default, diagnose_recording, enable_compilation_cache
     from fricjax.report.tables import fmt
 
+    config = config_or_default(recording, config)
+    _warn_scale(recording, config, mass)
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead
     enable_compilation_cache()
@@ -416,6 +440,61 @@ def diagnose(
     for item in diag.clock.summary()["skipped"]:
         typer.echo(f"time limit at {item['stage']}: {item['what']}")
     typer.echo(f"report: {paths['report']}")
+
+
+@app.command("init-config")
+def init_config_cmd(
+    recording: RecArg,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Config to write (.toml)")],
+    drive: Annotated[
+        str,
+        typer.Option(help="measured (measured_input on /F, else /u) | harmonic (harmonic_drive)"),
+    ] = "measured",
+    friction: Annotated[
+        str, typer.Option(help="Comma-separated: coulomb (required), viscous, stribeck")
+    ] = "coulomb,viscous",
+    harmonics: Annotated[int, typer.Option(help="Harmonics of a harmonic drive")] = 3,
+    axis: Annotated[
+        str | None, typer.Option(help="linear | rotary (default: the recording's attr)")
+    ] = None,
+    mass: MassOpt = None,
+    force: Annotated[bool, typer.Option(help="Overwrite an existing --out")] = False,
+) -> None:
+    """Write a commented starting config with bounds from the recording's own scale."""
+    from fricjax.api import init_config
+
+    _, path = init_config(
+        recording,
+        out,
+        drive=drive,
+        friction=friction,
+        harmonics=harmonics,
+        mass=mass,
+        axis=axis,
+        force=force,
+    )
+    typer.echo(f"wrote {path}; next: fricjax identify {recording} --config {path}")
+
+
+@app.command()
+def merge(
+    motion: Annotated[Path, typer.Argument(help="Motion recording (.h5 or .csv with t,x)")],
+    sensor: Annotated[Path, typer.Argument(help="Sensor CSV with a t column, any rate")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Merged recording (.h5 or .csv)")],
+    column: Annotated[str, typer.Option(help="Sensor column to bring over")] = "F",
+    as_signal: Annotated[
+        str, typer.Option("--as", help="F (force on the body, N) or u (drive input)")
+    ] = "F",
+    u_unit: Annotated[str, typer.Option(help="Unit of u when --as u")] = "",
+    mass: MassOpt = None,
+) -> None:
+    """Resample a second sensor onto the motion's time grid (anti-alias + cubic spline)."""
+    from fricjax.api import merge_sensor_file
+
+    rec, path = merge_sensor_file(
+        motion, sensor, out, column=column, as_signal=as_signal, u_unit=u_unit, mass=mass
+    )
+    typer.echo(f"wrote {path}: {rec.n} samples; {rec.notes}")
 
 
 bench_app = typer.Typer(

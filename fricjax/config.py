@@ -5,6 +5,7 @@ Layout::
 
     [model]
     terms = ["harmonic_drive", "stribeck_friction"]
+    axis = "linear"                 # or "rotary": units rad, N·m, kg·m² (fricjax.units)
     [model.harmonic_drive]          # options of a term (optional)
     harmonics = 10
     [params]                        # one entry per parameter the terms read
@@ -29,6 +30,7 @@ from fricjax.errors import FricjaxError, where
 from fricjax.model.registry import TERMS, make_term
 from fricjax.model.system import MASS, Model
 from fricjax.params import Param, ParamSpec
+from fricjax.units import LINEAR, AxisUnits, axis_unit, axis_units, same_unit
 
 SECTIONS = (
     "model",
@@ -52,6 +54,7 @@ class Config:
     tables: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     source: str = ""
     text: str = ""
+    axis: AxisUnits = LINEAR
 
     def table(self, name: str) -> Mapping[str, Any]:
         """A settings table (``preprocess``, ``search``, ...), empty if absent."""
@@ -86,9 +89,15 @@ def parse_config(raw: Mapping[str, Any], *, source: str = "config", text: str = 
                 f"{where(source, key)}: unknown section (known: {', '.join(SECTIONS)})"
             )
     model = _parse_model(raw.get("model"), source)
-    spec = _parse_params(raw.get("params", {}), model, source)
+    axis = _parse_axis(raw["model"], source)
+    spec = _parse_params(raw.get("params", {}), model, source, axis)
     tables = {k: dict(v) for k, v in raw.items() if k not in ("model", "params")}
-    return Config(model=model, spec=spec, tables=tables, source=source, text=text)
+    return Config(model=model, spec=spec, tables=tables, source=source, text=text, axis=axis)
+
+
+def _parse_axis(table: Mapping[str, Any], source: str) -> AxisUnits:
+    kind = table.get("axis", "linear")
+    return axis_units(kind if isinstance(kind, str) else repr(kind), source=f"{source}: [model]")
 
 
 def _parse_model(table: Any, source: str) -> Model:
@@ -98,7 +107,7 @@ def _parse_model(table: Any, source: str) -> Model:
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise FricjaxError(f"{where(source, '[model].terms')}: must be a non-empty list of names")
     for key in table:
-        if key != "terms" and key not in names:
+        if key not in ("terms", "axis") and key not in names:
             raise FricjaxError(f"{where(source, f'[model].{key}')}: not a term of this model")
     if any(name not in TERMS for name in names):
         import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue's terms)
@@ -117,14 +126,9 @@ def _parse_model(table: Any, source: str) -> Model:
     return Model(tuple(terms))
 
 
-def _units_match(expected: str, given: str) -> bool:
-    if expected.endswith("/u"):  # per unit of the recorded input: any "N/<unit>"
-        return given.startswith(expected[:-1])
-    norm = {"N*s/m": {"N*s/m", "Ns/m", "N.s/m", "N·s/m"}, "1": {"1", "", "-"}}
-    return given in norm.get(expected, {expected})
-
-
-def _parse_params(table: Mapping[str, Any], model: Model, source: str) -> ParamSpec:
+def _parse_params(
+    table: Mapping[str, Any], model: Model, source: str, axis: AxisUnits = LINEAR
+) -> ParamSpec:
     defaults = {q.name: q for q in model.parameters()}
     for name in table:
         if name not in defaults:
@@ -139,13 +143,15 @@ def _parse_params(table: Mapping[str, Any], model: Model, source: str) -> ParamS
                 continue  # taken from the recording
             raise FricjaxError(
                 f"{where(source, f'[params].{name}')}: missing (model term needs it; "
-                f"unit {default.unit})"
+                f"unit {axis_unit(default.unit, axis)})"
             )
-        params.append(_parse_param(name, table[name], default, source))
+        params.append(_parse_param(name, table[name], default, source, axis))
     return ParamSpec(tuple(params), source=source)
 
 
-def _parse_param(name: str, entry: Any, default: Param, source: str) -> Param:
+def _parse_param(
+    name: str, entry: Any, default: Param, source: str, axis: AxisUnits = LINEAR
+) -> Param:
     loc = where(source, f"[params].{name}")
     if isinstance(entry, int | float):
         entry = {"value": entry}
@@ -154,9 +160,13 @@ def _parse_param(name: str, entry: Any, default: Param, source: str) -> Param:
     for key in entry:
         if key not in PARAM_KEYS:
             raise FricjaxError(f"{loc}: unknown key {key!r} (known: {', '.join(PARAM_KEYS)})")
-    unit = str(entry.get("unit", default.unit))
-    if not _units_match(default.unit, unit):
-        raise FricjaxError(f"{loc}: wrong unit {unit!r}, expected {default.unit!r}")
+    expected = axis_unit(default.unit, axis)
+    unit = str(entry.get("unit", expected))
+    if not same_unit(expected, unit):
+        hint = "; [model].axis = 'rotary' takes rad, N·m, kg·m²" if axis.kind == "linear" else ""
+        raise FricjaxError(
+            f"{loc}: wrong unit {unit!r}, expected {expected!r} ({axis.kind} axis{hint})"
+        )
 
     def num(key: str) -> float:
         try:

@@ -21,6 +21,7 @@ specialise on them at trace time.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -38,6 +39,7 @@ from fricjax.errors import FricjaxError, where
 from fricjax.model.system import MASS, Model, cost
 from fricjax.model.term import GridSignals, Signals, TimeGrid, time_grid
 from fricjax.params import ParamSpec
+from fricjax.units import axis_unit
 
 
 def named_static(spec: ParamSpec, theta: Float[Array, " d"]) -> dict[str, Any]:
@@ -256,7 +258,48 @@ class Problem:
 
 
 def needs_input(model: Model) -> bool:
-    return any(term.name == "measured_input" for term in model.terms)
+    return input_signal(model) is not None
+
+
+def input_signal(model: Model) -> str | None:
+    """The recorded signal the model's ``measured_input`` reads (``"u"`` or ``"F"``), or
+    None when the model has no measured drive."""
+    signals = {getattr(t, "signal", "u") for t in model.terms if t.name == "measured_input"}
+    if len(signals) > 1:
+        raise FricjaxError(
+            "model: measured_input appears with signals u and F; one measured drive per model"
+        )
+    return signals.pop() if signals else None
+
+
+def bind_input(rec: Recording, model: Model) -> Recording:
+    """``rec`` with ``u`` the signal the model's measured drive reads: the measured force
+    ``/F`` [N] for ``measured_input`` with ``signal = "F"`` (``u_unit`` "N"), else as is.
+
+    Raises:
+        FricjaxError: the model reads a signal the recording lacks.
+    """
+    signal = input_signal(model)
+    if signal is None:
+        return rec
+    if getattr(rec, signal) is None:
+        raise FricjaxError(
+            f"{where(rec.path or rec.name, '/' + signal)}: missing (model term measured_input "
+            f"reads the recorded {'force' if signal == 'F' else 'drive input'} /{signal})"
+        )
+    if signal == "F":
+        return dataclasses.replace(rec, u=rec.F, u_unit="N")
+    return rec
+
+
+def check_axis(rec: Recording, config: Config) -> None:
+    """Refuse a recording whose ``axis`` attr contradicts the config's ``[model].axis``."""
+    if rec.axis and rec.axis != config.axis.kind:
+        raise FricjaxError(
+            f"{where(rec.path or rec.name, 'attr axis')}: recording is {rec.axis!r} but "
+            f"{config.source or 'the config'} has [model].axis = {config.axis.kind!r}; "
+            "make them agree"
+        )
 
 
 def build_problem(
@@ -267,15 +310,16 @@ def build_problem(
         config.table("preprocess"), source=config.source or "config"
     )
     spec: ParamSpec = config.spec
+    check_axis(rec, config)
     if not config.mass_in_spec:
         m = require_mass(rec)
-        spec = spec.extended([MASS.fixed_at(m)])
-    if needs_input(config.model) and rec.u is None:
-        raise FricjaxError(
-            f"{where(rec.path or rec.name, '/u')}: missing (model term measured_input needs "
-            "the recorded drive input)"
-        )
-    d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F)
+        mass = dataclasses.replace(MASS, unit=axis_unit(MASS.unit, config.axis))
+        spec = spec.extended([mass.fixed_at(m)])
+    checksum = rec.sha256()
+    rec = bind_input(rec, config.model)
+    # u and F are filtered like m·a ([preprocess].filter_input); F is handed on as u when
+    # the model's measured drive reads it (bind_input)
+    d = derivatives(rec.t, rec.x, settings, u=rec.u, source=rec.path or rec.name)
     u = d.u if d.u is not None else np.zeros_like(d.t)
     return Problem(
         model=config.model,
@@ -286,7 +330,7 @@ def build_problem(
         a=d.a,
         u=u,
         name=rec.name,
-        checksum=rec.sha256(),
+        checksum=checksum,
         source=rec.path,
         preprocess=settings,
     )

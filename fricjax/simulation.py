@@ -44,6 +44,7 @@ from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import atomic_path, write_text_atomic
 from fricjax.model.closed_loop import CascadePD
 from fricjax.params import check_known
+from fricjax.units import LINEAR
 from fricjax.validate import _named, _problem, simulate_model
 
 __all__ = [
@@ -57,7 +58,8 @@ __all__ = [
 ]
 
 FORMAT = "fricjax-simulation-v1"
-SIGNAL_UNITS = {"x": "m", "v": "m/s", "a": "m/s²", "force": "N", "actuation": "N"}
+#: Units of the compared signals on a linear axis (a rotary one: :mod:`fricjax.units`).
+SIGNAL_UNITS = LINEAR.signal_units()
 
 
 class SignalMetrics(NamedTuple):
@@ -176,7 +178,8 @@ def simulate_against(
         gain = float(p["gain"]) if "gain" in p else 1.0
         recorded["actuation"] = gain * np.asarray(rec.u[trim : trim + m])
         simulated["actuation"] = gain * us
-    metrics = {k: signal_metrics(simulated[k], recorded[k], SIGNAL_UNITS[k]) for k in recorded}
+    units = cfg.axis.signal_units()
+    metrics = {k: signal_metrics(simulated[k], recorded[k], units[k]) for k in recorded}
     return SimulationReport(
         recording=str(rec.path or rec.name),
         params={k: float(v) for k, v in p.items()},
@@ -227,7 +230,7 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
             g = f.create_group(group)
             for name, y in series.items():
                 ds = g.create_dataset(name, data=np.asarray(y, dtype=np.float64))
-                ds.attrs["unit"] = SIGNAL_UNITS[name]
+                ds.attrs["unit"] = report.metrics[name].unit
     png_path = plot_simulation(report, out / "simulation.png")
     return report._replace(files={"json": json_path, "h5": h5_path, "png": png_path})
 

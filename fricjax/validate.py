@@ -52,7 +52,7 @@ from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import write_text_atomic
 from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
 from fricjax.model.simulate import simulate
-from fricjax.problem import Problem, build_problem, needs_input
+from fricjax.problem import Problem, bind_input, build_problem, needs_input
 from fricjax.refine import RefineSettings, refine, uncertainty
 
 __all__ = [
@@ -242,6 +242,7 @@ def simulate_model(
         (closed, x [m], v [m/s], a [m/s²], u) over the m samples, numpy; ``u`` [unit of /u]
         is the simulated controller output in closed loop, None in open loop.
     """
+    rec = bind_input(rec, problem.model)
     keep = slice(start, stop)
     t = jnp.asarray(rec.t[keep])
     x0 = float(rec.x[start])

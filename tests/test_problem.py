@@ -16,7 +16,7 @@ from fricjax.model.simulate import simulate
 from fricjax.model.system import Model, cost
 from fricjax.model.term import Signals
 from fricjax.params import ParamSpec
-from fricjax.problem import Cost, EquationError, GridCost, Problem
+from fricjax.problem import Cost, EquationError, GridCost, Problem, build_problem
 
 
 def _exact_problem(spec: ParamSpec) -> Problem:
@@ -193,3 +193,37 @@ def test_non_uniform_times_fall_back_to_the_plain_cost(twin_problem: Problem) ->
     np.testing.assert_array_equal(
         np.asarray(jax.vmap(pb.cost_fn)(x)), np.asarray(jax.vmap(_plain_cost(pb))(x))
     )
+
+
+def test_measured_force_reaches_the_drive_filtered_like_m_a() -> None:
+    """``[model.measured_input] signal = "F"``: the model's drive reads /F [N], through the
+    same filter as m·a; a recording without /F is refused naming it."""
+    from fricjax.config import parse_config
+    from fricjax.data.preprocess import PreprocessSettings, filter_like_acceleration
+    from fricjax.data.recording import Recording
+    from fricjax.errors import FricjaxError
+
+    t = np.arange(500) / 1000.0
+    F = 10.0 * np.sin(2 * np.pi * 3.0 * t) + np.sin(2 * np.pi * 150.0 * t)  # 150 Hz: cut
+    rec = Recording(t=t, x=0.01 * np.sin(2 * np.pi * 3.0 * t), F=F, u=0 * t, mass=2.0)
+    raw = {
+        "model": {
+            "terms": ["measured_input", "coulomb_viscous"],
+            "measured_input": {"signal": "F"},
+        },
+        "params": {
+            "gain": {"unit": "N/N", "value": 1.0},
+            "offset": {"unit": "N", "lower": -1.0, "upper": 1.0},
+            "Fc": {"unit": "N", "lower": 0.0, "upper": 5.0},
+            "Fv": {"unit": "N*s/m", "lower": 0.0, "upper": 5.0},
+        },
+    }
+    problem = build_problem(rec, parse_config(raw))
+    expected = filter_like_acceleration(F, 1e-3, PreprocessSettings())
+    np.testing.assert_allclose(problem.u, expected, rtol=0, atol=1e-12)
+    assert np.max(np.abs(problem.u - F)) > 0.5  # the 150 Hz line is gone, as from m·a
+    with pytest.raises(FricjaxError, match=r"/F: missing .*recorded force /F"):
+        build_problem(Recording(t=t, x=rec.x, u=F, mass=2.0), parse_config(raw))
+    raw["model"]["measured_input"] = {"signal": "G"}
+    with pytest.raises(FricjaxError, match="signal must be one of u, F"):
+        parse_config(raw)

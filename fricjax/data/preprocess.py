@@ -64,6 +64,12 @@ class PreprocessSettings:
       every regressor column and the force) is anti-alias filtered and kept every
       ``decimate`` samples (:mod:`fricjax.data.decimate`); 1 = off. Applied by the
       problem's residual, not to the signals here.
+    * ``filter_input``: filter the measured drive input ``u`` and force ``F`` like ``m·a``
+      (True, the default), so the equation error compares like with like: Butterworth,
+      ``L(L(F))`` (``a = L D L D x`` passes the same zero-phase low-pass twice);
+      Savitzky–Golay, the smoothing polynomial of the same window and degree (``deriv=0``).
+      False keeps them raw (the published EMPS IDIM-LS recipe filters the torque only
+      through the decimation, ``configs/emps.toml``).
     * ``source``: where the settings came from (config file name), for error messages only.
 
     Why the defaults (measured for 1 kHz sampling; the paper twin has 10 harmonics of 5 Hz,
@@ -114,6 +120,7 @@ class PreprocessSettings:
     trim: int = 0
     stencil: int = 2
     decimate: int = 1
+    filter_input: bool = True
     source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
@@ -127,6 +134,11 @@ class PreprocessSettings:
             if not _is_int(value) or value < low:
                 raise FricjaxError(f"{self._key(name)}: must be an integer >= {low}, got {value!r}")
             object.__setattr__(self, name, int(value))
+        if not isinstance(self.filter_input, bool | np.bool_):
+            raise FricjaxError(
+                f"{self._key('filter_input')}: must be true or false, got {self.filter_input!r}"
+            )
+        object.__setattr__(self, "filter_input", bool(self.filter_input))
         if self.stencil not in (2, 4):
             raise FricjaxError(f"{self._key('stencil')}: must be 2 or 4, got {self.stencil!r}")
         window = self.savgol_window
@@ -197,7 +209,7 @@ class Derivatives(NamedTuple):
 
     ``t`` [s], ``x`` [m] (the measured displacement, not smoothed), ``v`` [m/s],
     ``a`` [m/s²], ``u`` (drive input, unit of the recording, or None) and ``F`` [N] (or None),
-    the last two trimmed but not filtered.
+    the last two trimmed, and filtered like ``m·a`` unless ``filter_input`` is off.
     """
 
     t: Float[np.ndarray, " m"]
@@ -223,8 +235,9 @@ def derivatives(
         t: sample times [s], shape [n], strictly increasing with uniform step.
         x: displacement [m], shape [n].
         settings: filter choice and parameters (:class:`PreprocessSettings`).
-        u: optional drive input, shape [n]; trimmed like the others, not filtered.
-        F: optional measured force [N], shape [n]; trimmed like the others, not filtered.
+        u: optional drive input, shape [n]; trimmed like the others and filtered like
+            ``m·a`` (:func:`filter_like_acceleration`) when ``settings.filter_input``.
+        F: optional measured force [N], shape [n]; treated as ``u``.
         source: recording name for error messages (e.g. the file path).
 
     Returns:
@@ -249,6 +262,9 @@ def derivatives(
         v, a = _butterworth(x_arr, dt, settings)
     else:
         v, a = _savgol(x_arr, dt, settings)
+    if settings.filter_input:
+        u_arr = None if u_arr is None else filter_like_acceleration(u_arr, dt, settings)
+        F_arr = None if F_arr is None else filter_like_acceleration(F_arr, dt, settings)
     keep = slice(settings.trim, n - settings.trim)
     return Derivatives(
         t=t_arr[keep],
@@ -258,6 +274,28 @@ def derivatives(
         u=None if u_arr is None else u_arr[keep],
         F=None if F_arr is None else F_arr[keep],
     )
+
+
+def filter_like_acceleration(
+    y: Float[np.ndarray, " n"], dt: float, settings: PreprocessSettings
+) -> Float[np.ndarray, " n"]:
+    """A measured force (or drive input) ``y`` [any unit], shape [n], through the smoothing
+    that :func:`derivatives` gives ``a``, so that ``m·a`` and ``y`` are compared alike.
+
+    Butterworth: ``L(L(y))`` with ``L`` the zero-phase low-pass of ``a = L D L D x``, same
+    order, cutoff and end padding (the differences ``D`` are derivatives, not smoothing; what
+    remains of them is their gain ``sin(ωΔt)/(ωΔt)`` per difference, 0.9997 at 5 Hz and
+    1 kHz). Savitzky–Golay: the least-squares polynomial of the same window and degree
+    (``deriv=0``), the smoother whose second derivative is ``a``.
+    """
+    if settings.method == "butterworth":
+        fs = 1.0 / dt
+        padlen = _padlen(y.shape[0], fs, settings)
+        once = filtfilt_lowpass(y, settings.order, settings.cutoff_hz, fs, padlen)
+        return filtfilt_lowpass(once, settings.order, settings.cutoff_hz, fs, padlen)
+    from scipy import signal
+
+    return signal.savgol_filter(y, settings.savgol_window, settings.savgol_polyorder, mode="interp")
 
 
 def measured_force(
@@ -293,10 +331,7 @@ def _butterworth(
     x: Float[np.ndarray, " n"], dt: float, s: PreprocessSettings
 ) -> tuple[Float[np.ndarray, " n"], Float[np.ndarray, " n"]]:
     fs = 1.0 / dt
-    n = x.shape[0]
-    n_sections = (s.order + 1) // 2  # scipy's default padlen counts second-order sections
-    padlen = max(3 * (2 * n_sections + 1), math.ceil(_PAD_CUTOFF_PERIODS * fs / s.cutoff_hz))
-    padlen = min(padlen, n - 1)
+    padlen = _padlen(x.shape[0], fs, s)
     # = scipy.signal.sosfiltfilt(butter(...), padtype="odd") to ~1e-14 (fricjax.data.filters)
     v = filtfilt_lowpass(difference(x, dt, s.stencil), s.order, s.cutoff_hz, fs, padlen)
     a = filtfilt_lowpass(difference(v, dt, s.stencil), s.order, s.cutoff_hz, fs, padlen)
@@ -316,6 +351,12 @@ def difference(y: Float[np.ndarray, " n"], dt: float, stencil: int = 2) -> Float
     if stencil == 4 and y.shape[0] >= 5:
         d[2:-2] = (y[:-4] - 8.0 * y[1:-3] + 8.0 * y[3:-1] - y[4:]) / (12.0 * dt)
     return d
+
+
+def _padlen(n: int, fs: float, s: PreprocessSettings) -> int:
+    n_sections = (s.order + 1) // 2  # scipy's default padlen counts second-order sections
+    padlen = max(3 * (2 * n_sections + 1), math.ceil(_PAD_CUTOFF_PERIODS * fs / s.cutoff_hz))
+    return min(padlen, n - 1)
 
 
 def _savgol(

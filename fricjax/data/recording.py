@@ -16,6 +16,9 @@ path               type              meaning
 ``/F``             float64 [n] opt.  measured force on the body, N
 ``/r``             float64 [n] opt.  reference position of a closed-loop rig, m
 attr ``mass``      float             moving mass, kg
+attr ``axis``      str, optional     ``"linear"`` (default) or ``"rotary"``: x, r in rad,
+                                     F in N·m, mass a moment of inertia in kg·m²
+                                     (:mod:`fricjax.units`)
 attrs ``name``,    str, optional     provenance
 ``source``,
 ``u_unit``,
@@ -66,7 +69,7 @@ MAX_STEP_JITTER = 1e-6
 _SIGNALS = ("t", "x", "u", "F", "r")
 _HDF5_SUFFIXES = (".h5", ".hdf5")
 _CSV_SUFFIX = ".csv"
-_TEXT_ATTRS = ("name", "source", "u_unit", "notes")
+_TEXT_ATTRS = ("name", "source", "u_unit", "notes", "axis")
 _MASS_ATTR = "attr 'mass'"
 
 # SI unit each dataset must carry if it says anything about its unit, and factors that
@@ -79,6 +82,9 @@ _TO_SI = {
     "F": {"kN": 1e3, "mN": 1e-3, "lbf": 4.4482216152605},
 }
 _TO_SI["r"] = _TO_SI["x"]
+# On a rotary axis (attr axis = "rotary") positions are angles and forces torques.
+_ROTARY_UNIT = {"x": "rad", "r": "rad", "F": "N·m"}
+_UNIT_NAMES.update({"rad": "radians", "N·m": "newton metres"})
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,6 +106,8 @@ class Recording:
         name, source, u_unit, notes: provenance text.
         path: the file it was read from ("" if built in memory); error messages name it.
         r: reference (set-point) position of a closed-loop rig, m, shape [n], or None.
+        axis: ``"linear"``, ``"rotary"`` (x in rad, F in N·m, mass in kg·m²), or ``""``
+            when the file does not say (the config's ``[model].axis`` decides).
     """
 
     t: Float[np.ndarray, " n"]
@@ -113,6 +121,7 @@ class Recording:
     notes: str = ""
     path: str = ""
     r: Float[np.ndarray, " n"] | None = None
+    axis: str = ""
 
     def __post_init__(self) -> None:
         for key in _SIGNALS:
@@ -278,6 +287,10 @@ def _validate(
             )
     if rec.mass is not None:
         _check_mass(rec.mass, name("mass"))
+    if rec.axis not in ("", "linear", "rotary"):
+        raise FricjaxError(
+            f"{where(rec.path, 'attr axis')}: must be 'linear' or 'rotary', got {rec.axis!r}"
+        )
     return rec
 
 
@@ -341,6 +354,7 @@ def _read_hdf5(path: Path, *, read_mass: bool) -> Recording:
     except OSError as exc:
         raise FricjaxError(f"{where(path)}: not a readable HDF5 file ({exc})") from None
     with f:
+        axis = _text_attr(path, f.attrs, "axis")
         signals: dict[str, np.ndarray | None] = {}
         for key in _SIGNALS:
             # `key in f` checks the link only; /truth is never looked up at all.
@@ -356,7 +370,7 @@ def _read_hdf5(path: Path, *, read_mass: bool) -> Recording:
                 raise FricjaxError(
                     f"{where(path, '/' + key)}: wrong dtype {ds.dtype} (expected float64 numbers)"
                 )
-            _check_unit(path, key, ds)
+            _check_unit(path, key, ds, axis)
             signals[key] = ds[()]
         attrs = f.attrs
         text = {k: _text_attr(path, attrs, k) for k in _TEXT_ATTRS}
@@ -364,15 +378,20 @@ def _read_hdf5(path: Path, *, read_mass: bool) -> Recording:
     return Recording(**signals, mass=mass, **text, path=str(path))
 
 
-def _check_unit(path: Path, key: str, ds: h5py.Dataset) -> None:
-    expected = _EXPECTED_UNIT.get(key)
+def _check_unit(path: Path, key: str, ds: h5py.Dataset, axis: str = "") -> None:
+    expected = (_ROTARY_UNIT if axis == "rotary" else _EXPECTED_UNIT).get(key)
     if expected is None or "unit" not in ds.attrs:
         return
     unit = ds.attrs["unit"]
     unit = unit.decode() if isinstance(unit, bytes) else str(unit)
     if unit.strip() == expected:
         return
-    factor = _TO_SI[key].get(unit.strip())
+    if axis != "rotary" and unit.strip() in ("rad", "N·m", "N*m", "Nm", "N.m"):
+        raise FricjaxError(
+            f"{where(path, '/' + key)}: unit {unit!r} is rotary; set root attr "
+            "axis = 'rotary' (x, r in rad, F in N·m, mass in kg·m²)"
+        )
+    factor = _TO_SI[key].get(unit.strip()) if axis != "rotary" else None
     hint = (
         f"multiply by {factor:g} to convert {unit} to {expected}"
         if factor is not None
@@ -541,7 +560,7 @@ def _write_csv_body(fh: TextIO, rec: Recording) -> None:
 
 
 def _write_hdf5_body(f: h5py.File, rec: Recording, truth: Mapping[str, Any] | None) -> None:
-    units = {"t": "s", "x": "m", "F": "N", "r": "m"}
+    units = {"t": "s", **(_ROTARY_UNIT if rec.axis == "rotary" else _EXPECTED_UNIT)}
     for key in _SIGNALS:
         value = getattr(rec, key)
         if value is None:
@@ -552,7 +571,8 @@ def _write_hdf5_body(f: h5py.File, rec: Recording, truth: Mapping[str, Any] | No
     if rec.mass is not None:
         f.attrs["mass"] = float(rec.mass)
     for key in _TEXT_ATTRS:
-        f.attrs[key] = str(getattr(rec, key))
+        if key != "axis" or rec.axis:
+            f.attrs[key] = str(getattr(rec, key))
     if truth is not None:
         _write_truth(f.create_group("truth"), truth)
 

@@ -168,6 +168,11 @@ class HarmonicDrive(Term):
         return jnp.concatenate([coef[:1], polar.reshape(-1)])
 
 
+#: Recorded signals a :class:`MeasuredInput` may read: the drive input ``/u`` (any unit,
+#: ``u_unit``) or the measured force on the body ``/F`` [N].
+INPUT_SIGNALS = ("u", "F")
+
+
 @dataclass(frozen=True)
 class MeasuredInput(Term):
     """``F_p(t) = g·u(t) − offset`` [N], for rigs whose drive signal ``u`` is recorded.
@@ -175,10 +180,23 @@ class MeasuredInput(Term):
     Parameters: gain [N per unit of u] (e.g. gτ = 35.15 N/V on EMPS), offset [N] — a
     constant force opposing the drive, with the sign convention of the EMPS inverse
     dynamic model ``M·q̈ + Fv·q̇ + Fc·sgn(q̇) + offset = gτ·vir``.
+
+    Option ``signal``: ``"u"`` (default) reads the drive input ``/u``; ``"F"`` reads the
+    measured force on the body ``/F`` [N] (a load cell), with ``gain`` in N/N (fixed at 1
+    unless the sensor's calibration is in doubt) and ``offset`` the sensor's zero error.
+    Either way the signal reaches the terms as ``s.u``, filtered like ``m·a``
+    (:func:`fricjax.data.preprocess.derivatives`).
     """
 
+    signal: str = "u"
     name: ClassVar[str] = "measured_input"
     role: ClassVar = "drive"
+
+    def __post_init__(self) -> None:
+        if self.signal not in INPUT_SIGNALS:
+            # TypeError: the config reports it as a bad option of the term
+            known = ", ".join(INPUT_SIGNALS)
+            raise TypeError(f"signal must be one of {known}, got {self.signal!r}")
 
     def parameters(self) -> tuple[Param, ...]:
         return (

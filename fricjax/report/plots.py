@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fricjax.io.atomic import atomic_path
+from fricjax.units import LINEAR, AxisUnits
 
 
 def save(fig: plt.Figure, path: str | Path) -> Path:
@@ -31,12 +32,18 @@ def plot_signals(
     *,
     title: str,
     path: str | Path,
+    units: AxisUnits = LINEAR,
 ) -> Path:
-    """Four stacked panels: x [m], v [m/s], a [m/s²], measured force m·a [N] against t [s]."""
+    """Four stacked panels: x [m], v [m/s], a [m/s²], measured force m·a [N] against t [s]
+    (rad, rad/s, rad/s², N·m on a rotary axis, ``units``)."""
     fig, axes = plt.subplots(4, 1, figsize=(8, 8), sharex=True)
-    for ax, y, label in zip(
-        axes, (x, v, a, force), ("x [m]", "v [m/s]", "a [m/s²]", "m·a [N]"), strict=True
-    ):
+    labels = (
+        units.label("position", "x"),
+        units.label("velocity", "v"),
+        units.label("acceleration", "a"),
+        units.label("force", "m·a"),
+    )
+    for ax, y, label in zip(axes, (x, v, a, force), labels, strict=True):
         ax.plot(t, y, lw=1)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)

@@ -8,6 +8,12 @@ import numpy as np
 
 from fricjax.io.results import ResultsFile, RunResult, read_results
 from fricjax.report.tables import SEED_GROUPS, fmt, format_table, seed_tables
+from fricjax.units import AxisUnits, axis_units
+
+
+def run_units(run: RunResult) -> AxisUnits:
+    """The axis units of a run (``axis`` attr written by identify; linear if absent)."""
+    return axis_units(str(run.attrs.get("axis", "linear") or "linear"))
 
 
 def _truth_for(path: str | Path | None) -> dict[str, float] | None:
@@ -39,23 +45,124 @@ def parameter_table(run: RunResult) -> str:
     return format_table(rows, ("parameter", "unit", "value", "σ", "σ/|value|", "flags"))
 
 
+#: A parameter is loose when its ±2σ interval (95 %) is wider than ±half its scale, i.e.
+#: σ > scale/4: the record cannot tell the value from half or 1.5 times it. Scale: |value|,
+#: or half the box width when the box holds 0 or the value is 0 (an offset or a phase may
+#: sit near 0).
+LOOSE_SIGMA = 0.25
+#: Pairs with |ρ| above this are reported as traded against each other: along their
+#: combination the cost changes 1/(1 − ρ²) ≥ 50 times less than along each alone.
+STRONG_CORRELATION = 0.99
+#: Friction parameters: their cure is excitation in velocity, not more drive periods.
+_FRICTION = ("Fc", "Fs", "vs", "delta", "Fv")
+
+
+def undetermined(run: RunResult) -> dict[str, str]:
+    """Parameters the record does not determine, each with the reason in words: on a bound
+    of the box, σ above :data:`LOOSE_SIGMA` of its scale, or not determined at all."""
+    out: dict[str, str] = {}
+    for i, name in enumerate(run.names):
+        value, sd = float(run.value[i]), float(run.std[i])
+        lo, hi, unit = float(run.lower[i]), float(run.upper[i]), run.units[i]
+        reasons = []
+        tol = 1e-6 * (hi - lo)
+        if value <= lo + tol or value >= hi - tol:
+            side = "lower" if value <= lo + tol else "upper"
+            reasons.append(f"on its {side} bound ({fmt(value, 4)} {unit}): the box set it")
+        scale = 0.5 * (hi - lo) if lo < 0.0 < hi or value == 0.0 else abs(value)
+        if not np.isfinite(sd):
+            reasons.append("not determined at all (no curvature of the cost along it)")
+        elif scale > 0.0 and sd > LOOSE_SIGMA * scale:
+            reasons.append(f"±2σ = ±{fmt(2 * sd, 3)} {unit}, {100 * 2 * sd / scale:.0f} % of it")
+        if reasons:
+            out[name] = "; ".join(reasons)
+    return out
+
+
+def correlated_pairs(run: RunResult) -> list[tuple[str, str, float]]:
+    """Parameter pairs with |ρ| > :data:`STRONG_CORRELATION`, strongest first."""
+    corr = np.asarray(run.corr)
+    pairs = [
+        (run.names[i], run.names[j], float(corr[i, j]))
+        for i in range(len(run.names))
+        for j in range(i + 1, len(run.names))
+        if np.isfinite(corr[i, j]) and abs(corr[i, j]) > STRONG_CORRELATION
+    ]
+    return sorted(pairs, key=lambda p: -abs(p[2]))
+
+
+def determination(run: RunResult) -> str:
+    """Plain words: which parameters the record does not determine, and what would fix it."""
+    loose = undetermined(run)
+    pairs = correlated_pairs(run)
+    if not loose and not pairs:
+        return (
+            f"Every parameter is determined by this record (±2σ within ±{200 * LOOSE_SIGMA:.0f} %"
+            " of its value, none on a bound)."
+        )
+    lines = []
+    if loose:
+        lines.append(
+            f"This record does NOT determine {len(loose)} of {len(run.names)} parameters: "
+            f"{', '.join(loose)}. Their values come from the box or the noise, not from the "
+            "physics; do not read them as measured."
+        )
+        width = max(len(n) for n in loose)
+        lines += [f"  {n:<{width}}  {why}" for n, why in loose.items()]
+    if pairs:
+        shown = ", ".join(f"{a}–{b} (ρ = {r:.3f})" for a, b, r in pairs[:8])
+        more = f" and {len(pairs) - 8} more" if len(pairs) > 8 else ""
+        lines.append(
+            f"Traded against each other (|ρ| > {STRONG_CORRELATION}): {shown}{more}; the record "
+            "fixes a combination of each pair, not the two apart."
+        )
+    names = set(loose) | {n for a, b, _ in pairs for n in (a, b)}
+    fixes = ["a longer record (σ falls as 1/√duration)"]
+    if names & set(_FRICTION):
+        fixes.append(
+            "richer excitation for the friction terms: more velocity reversals, slow and fast "
+            "sliding both"
+        )
+    if names - set(_FRICTION):
+        fixes.append("more periods of the drive, or an input with more frequencies")
+    fixes.append(
+        "fix a parameter known from elsewhere in the config ({ value = ... }), which also "
+        "frees the ones traded against it"
+    )
+    if any("bound" in why for why in loose.values()):
+        fixes.append("widen a box whose bound is not physical")
+    lines.append("What would fix it: " + "; ".join(fixes) + ".")
+    on_bound = [n for n, why in loose.items() if "bound" in why]
+    if len(on_bound) >= max(2, len(run.names) / 2):
+        # a record and a box that disagree on scale put nearly everything on a bound
+        lines.append(
+            f"{len(on_bound)} of {len(run.names)} parameters sit on a bound: the recording's "
+            "scale and the config's bounds disagree. Check the units (x in mm instead of m? "
+            "mass in g? force in kN?) or write bounds from the recording with "
+            "`fricjax init-config`."
+        )
+    return "\n".join(lines)
+
+
 def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
     a = run.attrs
+    u = run_units(run)
+    sq = u.force_sq
     if str(a.get("objective", "")).startswith("output error"):
         # The output-error cost is Σ((x_sim − x)/σ_x)² + defects: not in N², not an EMS.
         return [
             ("objective", str(a["objective"])),
-            ("equation-error EMS of the start [N²]", fmt(a.get("equation_ems", float("nan")), 7)),
+            (f"equation-error EMS of the start [{sq}]", fmt(a.get("equation_ems", np.nan), 7)),
             ("output-error cost [(x/σ_x)²]", fmt(run.cost, 7)),
-            ("position RMS [m]", fmt(a.get("position_rms", float("nan")), 4)),
+            (f"position RMS [{u.position}]", fmt(a.get("position_rms", float("nan")), 4)),
         ]
     return [
-        ("cost after search [N²]", fmt(run.cost_search, 7)),
+        (f"cost after search [{sq}]", fmt(run.cost_search, 7)),
         (
-            "cost after refine [N²]",
+            f"cost after refine [{sq}]",
             fmt(run.cost, 7) if a.get("refined", True) else "not refined",
         ),
-        ("EMS [N²] (seed Table 4)", fmt(run.ems, 7)),
+        (f"EMS [{sq}] (seed Table 4)", fmt(run.ems, 7)),
     ]
 
 
@@ -75,10 +182,7 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
             ("interrupted", str(a.get("interrupted", False))),
         ]
     )
-    parts = [head, parameter_table(run)]
-    flagged = [f"{n}: {f}" for n, f in zip(run.names, run.flags, strict=True) if f]
-    if flagged:
-        parts.append("Not pinned down by this recording:\n  " + "\n  ".join(flagged))
+    parts = [head, parameter_table(run), determination(run)]
     if len(run.minima_cost):
         rows = [
             (str(i + 1), fmt(float(c), 7), str(int(k)))
@@ -86,11 +190,18 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
         ]
         parts.append(
             "Distinct end points of the chains (before refinement):\n"
-            + format_table(rows[:8], ("minimum", "cost [N²]", "chains"))
+            + format_table(rows[:8], ("minimum", f"cost [{run_units(run).force_sq}]", "chains"))
         )
     truth = _truth_for(recording)
     if truth:
-        parts.append(seed_tables({run.label: run.params}, ems={run.label: run.ems}, truth=truth))
+        parts.append(
+            seed_tables(
+                {run.label: run.params},
+                ems={run.label: run.ems},
+                truth=truth,
+                ems_unit=run_units(run).force_sq,
+            )
+        )
     return "\n\n".join(parts)
 
 
@@ -100,6 +211,7 @@ def show_results(path: str | Path, *, recording: str | Path | None = None) -> st
     rec = recording or results.attrs.get("recording_path") or None
     truth = _truth_for(rec)
     runs = results.runs
+    sq = run_units(runs[0]).force_sq if runs else "N²"
     columns = {r.label: r.params for r in runs}
     ems = {r.label: r.ems for r in runs}
     extra = sorted({n for r in runs for n in r.names} - {n for _, g in SEED_GROUPS for n in g})
@@ -107,7 +219,7 @@ def show_results(path: str | Path, *, recording: str | Path | None = None) -> st
         f"results: {path}\nrecording: {results.attrs.get('recording_name')} "
         f"(sha256 {str(results.attrs.get('recording_sha256'))[:16]})"
     )
-    body = seed_tables(columns, ems=ems, truth=truth, extra_rows=extra)
+    body = seed_tables(columns, ems=ems, truth=truth, extra_rows=extra, ems_unit=sq)
     ranking = format_table(
         [
             (
@@ -120,6 +232,6 @@ def show_results(path: str | Path, *, recording: str | Path | None = None) -> st
             )
             for r in sorted(runs, key=lambda r: r.cost)
         ],
-        ("run", "method", "cost [N²]", "EMS [N²]", "before refine", "time [s]"),
+        ("run", "method", f"cost [{sq}]", f"EMS [{sq}]", "before refine", "time [s]"),
     )
     return f"{header}\n\n{body}\n\nRuns ranked by final cost\n{ranking}"

@@ -10,13 +10,7 @@ from fricjax.report.plots import plt, save
 if TYPE_CHECKING:
     from fricjax.simulation import SimulationReport
 
-_LABELS = {
-    "x": "x [m]",
-    "v": "v [m/s]",
-    "a": "a [m/s²]",
-    "force": "m·a [N]",
-    "actuation": "g·u [N]",
-}
+_SYMBOLS = {"x": "x", "v": "v", "a": "a", "force": "m·a", "actuation": "g·u"}
 
 
 def plot_simulation(report: SimulationReport, path: str | Path) -> Path:
@@ -37,12 +31,13 @@ def plot_simulation(report: SimulationReport, path: str | Path) -> Path:
         left, right = axes[row]
         left.plot(t, report.recorded[name], lw=1.0, color="0.25", label="recorded")
         left.plot(t, report.simulated[name], lw=1.0, color="tab:red", ls="--", label="simulated")
-        left.set_ylabel(_LABELS[name])
-        left.grid(alpha=0.3)
         m = report.metrics[name]
+        label = f"{_SYMBOLS[name]} [{m.unit}]"  # units of the axis (fricjax.units)
+        left.set_ylabel(label)
+        left.grid(alpha=0.3)
         right.plot(t, report.residual(name), lw=0.8, color="tab:blue")
         right.axhline(0.0, color="0.5", lw=0.6)
-        right.set_ylabel(f"Δ{_LABELS[name]}")
+        right.set_ylabel(f"Δ{label}")
         right.set_title(f"RMS {m.rms:.3g} {m.unit}, fit {m.fit:.1f} %", fontsize=9)
         right.grid(alpha=0.3)
     axes[0, 0].legend(loc="best", fontsize=8)

@@ -109,10 +109,12 @@ def seed_tables(
     ems: Mapping[str, float],
     truth: Mapping[str, float] | None = None,
     extra_rows: Sequence[str] = (),
+    ems_unit: str = "N²",
 ) -> str:
     """Seed Tables 1–4 with one column per run (+ truth and relative-error columns).
 
-    ``columns``: run label -> {parameter: value}; ``ems``: run label -> EMS [N²].
+    ``columns``: run label -> {parameter: value}; ``ems``: run label -> EMS [``ems_unit``,
+    N² or (N·m)² on a rotary axis].
     With ``truth``, each run gets an error column: relative error in % for forces and
     amplitudes, absolute error (rad) for phases.
     """
@@ -142,7 +144,7 @@ def seed_tables(
         out.append(f"{title}\n{format_table(rows, header)}")
     ems_rows = [
         [
-            "EMS [N²]",
+            f"EMS [{ems_unit}]",
             *([""] if truth else []),
             *[c for lb in labels for c in ((fmt(ems[lb], 6), "") if truth else (fmt(ems[lb], 6),))],
         ]

@@ -510,3 +510,19 @@ def test_reference_is_validated_like_the_other_signals(tmp_path: Path) -> None:
     with pytest.raises(FricjaxError) as err:
         read_recording(path)
     assert_one_line(err, "mm.h5", "/r", "wrong units 'mm'", "multiply by 0.001")
+
+
+def test_rotary_axis_attr_round_trips_and_rotary_units_need_it(tmp_path: Path) -> None:
+    t = np.arange(20) / 100.0
+    rec = Recording(t=t, x=0.5 * t, F=np.ones(20), mass=0.02, axis="rotary")
+    path = write_recording(rec, tmp_path / "r.h5")
+    with h5py.File(path) as f:
+        assert f["x"].attrs["unit"] == "rad" and f["F"].attrs["unit"] == "N·m"
+        assert f.attrs["axis"] == "rotary"
+    assert read_recording(path).axis == "rotary"
+    linear = write_recording(Recording(t=t, x=0.5 * t, mass=1.0), tmp_path / "l.h5")
+    assert read_recording(linear).axis == ""  # not stated: the config decides
+    with h5py.File(linear, "a") as f:
+        f["x"].attrs["unit"] = "rad"
+    with pytest.raises(FricjaxError, match="is rotary; set root attr axis = 'rotary'"):
+        read_recording(linear)
