@@ -147,11 +147,11 @@ def _collapse(params: Sequence[Param]) -> list[tuple[str, Param]]:
     return rows
 
 
-def _probe() -> tuple[dict[str, float], Signals]:
+def _probe() -> tuple[dict[str, Any], Signals]:
     """Distinct nonzero values for every registered parameter (inside its default box) and
     test signals with reversals and stops: where a linearity check cannot vanish by
     accident (e.g. ``Fs − Fc = 0``)."""
-    values: dict[str, float] = {}
+    values: dict[str, Any] = {}
     for factory in TERMS.values():
         for j, p in enumerate(factory().parameters()):
             guess = p.init if p.init != 0 else 0.37 + 0.05 * j
@@ -169,7 +169,7 @@ def _probe() -> tuple[dict[str, float], Signals]:
     return values, signals
 
 
-def _linear_in(term: Term, name: str, values: dict[str, float], s: Signals) -> bool:
+def _linear_in(term: Term, name: str, values: dict[str, Any], s: Signals) -> bool:
     """Whether ``term.force`` is linear in parameter ``name`` with the others held: equal
     steps of the parameter give equal steps of the force (exact up to rounding)."""
     q = values[name]
