@@ -68,7 +68,8 @@ Each entry is a number (a fixed value) or a table with the keys {param_keys}:
 | `unit` | the parameter's unit as in the tables below (checked; `N*s/m`, `Ns/m`, `N·s/m` \
 are one unit; `N/u`: newtons per unit of the recorded input, e.g. `N/V`) |
 | `lower`, `upper` | the search box of a free parameter (required when free) |
-| `init` | start of the refiner when the search is off; default the box centre |
+| `init` | initial value; default the box centre (the search itself starts from random \
+points in the box) |
 | `value` | a fixed value (the parameter is then not identified) |
 | `free` | `true`/`false`: override whether the parameter is identified |
 
