@@ -62,7 +62,7 @@ from fricjax.validate import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "real" / "emps"
+DATA = Path(os.environ.get("FRICJAX_EMPS_DIR") or ROOT.parent / "shared" / "data" / "real" / "emps")
 OUT = ROOT / "benchmarks" / "results"
 CONFIG = ROOT / "configs" / "emps.toml"
 FILES = {"estimation": "DATA_EMPS.mat", "validation": "DATA_EMPS_PULSES.mat"}

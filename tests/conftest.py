@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -10,12 +11,30 @@ import fricjax  # noqa: F401  (float64 on)
 from fricjax.config import Config, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
-EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"
+#: Where the EMPS benchmark's MAT files are looked for: $FRICJAX_EMPS_DIR, else
+#: ../shared/data/real/emps/ beside the repository (never an absolute path).
+EMPS_ENV = "FRICJAX_EMPS_DIR"
+EMPS_FILES = ("DATA_EMPS.mat", "DATA_EMPS_PULSES.mat")
 
 
 @pytest.fixture(scope="session")
 def paper_config() -> Config:
     return load_config(ROOT / "configs" / "paper.toml")
+
+
+@pytest.fixture(scope="session")
+def emps_dir() -> Path:
+    """The folder holding the EMPS benchmark's DATA_EMPS.mat and DATA_EMPS_PULSES.mat; the
+    test is skipped, saying where the data comes from, when they are not there."""
+    folder = Path(os.environ.get(EMPS_ENV) or ROOT.parent / "shared" / "data" / "real" / "emps")
+    missing = [name for name in EMPS_FILES if not (folder / name).is_file()]
+    if missing:
+        pytest.skip(
+            f"EMPS data not found ({', '.join(missing)} in {folder}): the EMPS benchmark "
+            "(Janot, Gautier & Brunot 2019, nonlinearbenchmark.org); put its MAT files in "
+            f"../shared/data/real/emps/ beside the repository or set {EMPS_ENV}"
+        )
+    return folder
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,5 @@
-"""EMPS real recordings end to end (skipped when ``../shared/data/real/emps/`` is absent):
+"""EMPS real recordings end to end (skipped, naming where the data comes from, when the
+benchmark's MAT files are absent: ``emps_dir`` in conftest.py):
 import, the published IDIM-LS values and σ, IDIM relative errors on both files, the
 controller law and the closed-loop re-simulation. Published values: the data README."""
 
@@ -19,7 +20,6 @@ from fricjax.problem import build_problem
 from fricjax.validate import equation_error, simulation_error
 
 ROOT = Path(__file__).resolve().parents[1]
-EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"  # never an absolute path
 FILES = {"estimation": "DATA_EMPS.mat", "validation": "DATA_EMPS_PULSES.mat"}
 PUBLISHED = {"mass": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}
 SIGMA = {"mass": 0.1085, "Fv": 1.1460, "Fc": 0.1012, "offset": 0.0444}
@@ -30,12 +30,8 @@ BOUND = {"mass": 0.2, "Fv": 0.2, "Fc": 0.2, "offset": 0.2}
 
 
 @pytest.fixture(scope="module")
-def mats():
-    paths = {k: EMPS_DIR / f for k, f in FILES.items()}
-    missing = [str(p) for p in paths.values() if not p.is_file()]
-    if missing:
-        pytest.skip(f"EMPS data not found: {', '.join(missing)} (expected ../shared next to repo)")
-    return paths
+def mats(emps_dir: Path) -> dict[str, Path]:
+    return {k: emps_dir / f for k, f in FILES.items()}
 
 
 @pytest.fixture(scope="module")

@@ -32,7 +32,6 @@ from fricjax.problem import build_problem
 from fricjax.refine import RefineSettings, refine, uncertainty
 
 ROOT = Path(__file__).resolve().parents[1]
-EMPS_DIR = ROOT.parent / "shared" / "data" / "real" / "emps"
 EMPS_TRUTH = {"gain": 35.15065188, "offset": -3.1648, "Fc": 20.3935, "Fv": 203.5034, "mass": 95.1}
 
 
@@ -271,10 +270,8 @@ def test_identify_with_the_simulation_objective(twin_problem, paper_config):
 
 
 @pytest.mark.slow  # ~4 min on 2 cores: 49 segments of 0.5 s over 24.7 s, 102 unknowns
-def test_emps_output_error_against_equation_error():
-    path = EMPS_DIR / "DATA_EMPS.mat"
-    if not path.is_file():
-        pytest.skip(f"EMPS data not found: {path}")
+def test_emps_output_error_against_equation_error(emps_dir: Path):
+    path = emps_dir / "DATA_EMPS.mat"
     from fricjax.data.importers import import_mat
 
     cfg = load_config(ROOT / "configs" / "emps.toml")

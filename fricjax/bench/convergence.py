@@ -752,7 +752,7 @@ def convergence_markdown(
     header += ["search time [s]", "evals/s"]
     if cs.refine:
         header += ["LM time [s]"]
-    rows = []
+    rows: list[Sequence[str]] = []
     for label, row in summary.items():
         q = row["raw_q"]
         cells = [

@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.errors import FricjaxError, where
+from fricjax.model.drive import HarmonicDrive
 from fricjax.problem import Problem
 
 _FRICTION = ("Fc", "Fs", "vs", "delta", "Fv")
@@ -61,7 +62,9 @@ class SeedCost:
                 f"{where(problem.spec.source or 'config', '[model].terms')}: the benchmark "
                 f"cost needs harmonic_drive + stribeck_friction, got {', '.join(names)}"
             )
-        harmonics = int(problem.model.terms[0].harmonics)
+        drive = problem.model.terms[0]
+        assert isinstance(drive, HarmonicDrive)  # the names were checked above
+        harmonics = int(drive.harmonics)
         spec = problem.spec
         index = {name: i for i, name in enumerate(spec.free_names)}
         fixed = {p.name: float(p.init) for p in spec.params if not p.free}

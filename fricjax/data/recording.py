@@ -5,7 +5,7 @@ A recording is the sampled motion of one body, ``x(t_k)`` for ``t_k = t_0 + k·d
 force on the body ``F(t_k)``. Identification fits ``m·ẍ = F_model(t, x, ẋ, u)`` (seed
 paper, eq. 1) to it, so it needs the moving mass ``m`` too.
 
-HDF5 layout v1 (``shared/conventions.md``):
+HDF5 layout v1 (``docs/formats.md``):
 
 =================  ================  ==========================================
 path               type              meaning

@@ -49,7 +49,7 @@ PAPER_TRUTH: dict[str, float] = {
 
 #: Default noise on x [m]. With the default preprocessing (4th-order Butterworth at
 #: 100 Hz, zero phase) it makes the equation-error EMS at the true parameters of the order
-#: of the seed's Table 4 (EMS ≈ 5.8e4 N²); measured value in the README.
+#: of the seed's Table 4 (EMS ≈ 5.8e4 N²); measured value in docs/history.md (the paper twin).
 DEFAULT_NOISE_STD = 2.4e-5
 
 

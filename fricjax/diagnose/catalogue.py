@@ -1,6 +1,6 @@
 """The catalogue of candidate physics terms that the diagnosis tries on a fitted base model.
 
-Every effect name of ``shared/conventions.md`` (except ``unexplained``, which the selection
+Every effect name of ``docs/formats.md`` (except ``unexplained``, which the selection
 reports when nothing here fits) is one :class:`Candidate`. A candidate is either a model
 :class:`~fricjax.model.term.Term` appended to the base model, or (``mass_error``) a change of
 the parameter specification. Its parameters split in two:

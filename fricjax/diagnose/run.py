@@ -1,7 +1,7 @@
 """``diagnose``: fit the base model, locate the mismatch, name and model what is missing,
 and prove the gain (before/after fit, held-out check, simulation error).
 
-Output (:func:`write_diagnosis`): ``diagnosis.json`` in the form of shared/conventions.md,
+Output (:func:`write_diagnosis`): ``diagnosis.json`` in the form of docs/formats.md,
 ``report.md`` for a test engineer, residual plots before/after, and ``models.h5`` with the
 base and final fitted models.
 """

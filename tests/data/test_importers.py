@@ -12,8 +12,6 @@ from fricjax.data.importers import EMPS_MAP, import_mat
 from fricjax.data.recording import read_recording, validate, write_recording
 from fricjax.errors import FricjaxError
 
-EMPS_DIR = Path(__file__).resolve().parents[2].parent / "shared/data/real/emps"
-
 N = 500
 DT = 1e-3
 
@@ -151,11 +149,8 @@ def test_bad_file_mapping_and_mass(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def emps_mat() -> Path:
-    path = EMPS_DIR / "DATA_EMPS.mat"
-    if not path.is_file():
-        pytest.skip(f"EMPS benchmark data not found at {path} (expected ../shared next to repo)")
-    return path
+def emps_mat(emps_dir: Path) -> Path:
+    return emps_dir / "DATA_EMPS.mat"
 
 
 def test_emps_import(emps_mat: Path, tmp_path: Path) -> None:

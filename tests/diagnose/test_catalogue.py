@@ -48,7 +48,7 @@ from fricjax.model.term import Signals
 from fricjax.params import ParamSpec
 from fricjax.problem import Problem
 
-CONVENTIONS = Path(__file__).resolve().parents[2].parent / "shared" / "conventions.md"
+FORMATS = Path(__file__).resolve().parents[2] / "docs" / "formats.md"  # the conventions
 EFFECTS = [c.effect for c in CATALOGUE]
 
 
@@ -69,8 +69,8 @@ def _np(s: Signals) -> tuple[np.ndarray, ...]:
 
 # -- coverage -----------------------------------------------------------------------------
 def test_every_conventions_effect_is_catalogued_in_fixed_order() -> None:
-    text = CONVENTIONS.read_text()
-    table = text[text.index("Effect names") :]
+    text = FORMATS.read_text()
+    table = text[text.index("## Effect names") :]
     names = re.findall(r"^\| `([a-z_]+)` \|", table, flags=re.MULTILINE)
     assert "unexplained" in names and len(names) == 12
     assert EFFECTS == [n for n in names if n != "unexplained"]
