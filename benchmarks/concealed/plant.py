@@ -36,7 +36,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 
-RTOL = 1e-8
+RTOL = 1e-7
 ATOL = (1e-12, 1e-10, 1e-9)  # x [m], v [m/s], z [1]
 STICK_SCAN = 2e-4  # s: grid on which a stuck body's breakaway is looked for
 MAX_PHASES = 20000
