@@ -102,7 +102,8 @@ C_RTOL = 0.03
 TARGET_RTOL = 0.1
 MAX_EVALS = 8
 SHAPE_TRIES = 2
-LM_ITERS = 12
+LM_ITERS = 36  # a refit from the truth (the recorded c, the oracle)
+LM_ITERS_WARM = 12  # a warm refit of the amplitude search
 FD_STEP = 1e-5  # relative finite-difference step of the refit's first Jacobian
 
 # Seed Tables 1-3, CSAA column (eq. 5 with N = 10, δ = 1); ω is drawn (the paper gives none).
@@ -549,8 +550,12 @@ class Fitter:
         """``y − x_b(θ̂)``: what no base refit absorbs of ``y``. ``warm``: start from the
         previous warm refit's θ̂ and Jacobian (the amplitude search refits records that
         differ a little), else from the truth."""
-        q0, jac = self._warm if warm and self._warm else (None, self.jac)
-        q, r, J = refit(self.base_x, y, jac, q0)
+        q0, jac = None, self.jac
+        if warm and self._warm is not None:  # the warm start only where it fits better
+            r0, rw = y - self.x0, y - self.base_x(self._warm[0])
+            if float(rw @ rw) < float(r0 @ r0):
+                q0, jac = self._warm
+        q, r, J = refit(self.base_x, y, jac, q0, LM_ITERS_WARM if warm else LM_ITERS)
         if warm:
             self._warm = (q, J)
         return r
@@ -710,14 +715,15 @@ def make_case(
                 break
         effect = Effect(spec.effect, shape.params(a))
         x_clean, u = recorded(setup, effect)
+        # measured again from the truth (a cold refit), as anyone re-measuring would
+        c_cold = concealment(fitter, x_clean, spec.sigma)
         truth.update(
             params=dict(effect.params),
             amplitude=a,
             amplitude_max=shape.a_max,
-            # measured again from the truth (a cold refit), as anyone re-measuring would
-            concealment=concealment(fitter, x_clean, spec.sigma),
+            concealment=c_cold,
             concealment_search=c,
-            reached=reached,
+            reached=reached and abs(c_cold / spec.level - 1.0) < TARGET_RTOL,
             secant_evals=evals,
             raw_rms_over_sigma=rms(x_clean - fitter.x0) / spec.sigma,
         )
@@ -825,7 +831,10 @@ def generate(data: Path, draws: Sequence[str], workers: int = 1, limit: int = 0)
             if not paths[-1].is_file():
                 jobs.append((str(data), draw, s.index))
     if workers > 1 and len(jobs) > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        from multiprocessing import get_context
+
+        # spawn, not fork: the parent may have imported jax (fricjax), which forks badly
+        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
             for line in pool.map(_one, jobs):
                 print(line, flush=True)
     else:
