@@ -390,7 +390,7 @@ def draw_shape(
             name,
             lambda a: {"drift_beta": sign * a, "drift_tmid": T / 2, "drift_T": T},
             0.02 * f_ref,
-            0.9 * p["Fc"],
+            1.6 * p["Fc"],
         )
     if name == "mass_error":
         return Shape(name, lambda a: {"mass_eps": sign * a}, 0.005, 0.3)
@@ -563,7 +563,9 @@ class Fitter:
     def with_term(self, y: np.ndarray, effect: Effect, free: Sequence[str]) -> np.ndarray:
         """``y − x(θ̂, φ̂)``: base and the effect's ``free`` parameters refitted together."""
         e0 = dict(effect.params)
-        sc = np.array([max(abs(e0[k]), 1e-9) for k in free])
+        pair = {"per_A": "per_B", "per_B": "per_A", "harm_A": "harm_B", "harm_B": "harm_A"}
+        # a quadrature amplitude near 0 is scaled by its pair's modulus
+        sc = np.array([max(math.hypot(e0[k], e0.get(pair.get(k, k), 0.0)), 1e-9) for k in free])
         nb = len(self.names)
 
         def x_of(q: np.ndarray) -> np.ndarray:
