@@ -103,7 +103,7 @@ TARGET_RTOL = 0.1
 MAX_EVALS = 8
 SHAPE_TRIES = 2
 LM_ITERS = 36  # a refit from the truth (the recorded c, the oracle)
-LM_ITERS_WARM = 12  # a warm refit of the amplitude search
+LM_ITERS_WARM = 20  # a warm refit of the amplitude search
 FD_STEP = 1e-5  # relative finite-difference step of the refit's first Jacobian
 
 # Seed Tables 1-3, CSAA column (eq. 5 with N = 10, δ = 1); ω is drawn (the paper gives none).
