@@ -96,6 +96,9 @@ CONFIGS: dict[str, Path] = {
 # 4 s records take the diagnosis 5-10 min: this many effect cases of that length per draw
 # (and one null), the rest split evenly between 0.272 s and 1 s.
 LONG_EFFECT_CASES = 2
+# Planning figures of today's diagnosis per case [min] (1 s: 0.5-2 min measured; 4 s: the
+# scorer's 5 min timeout), for the estimate printed with the plan.
+DIAGNOSE_MINUTES: dict[float, float] = {0.272: 0.5, 1.0: 1.5, 4.0: 5.0}
 C_RTOL = 0.03
 # the recorded c (a cold refit from the truth) lies within this of the level where the
 # search (warm refits) reached it within C_RTOL
@@ -254,6 +257,11 @@ def plan_table(specs: Sequence[CaseSpec]) -> str:
     ):
         counts = Counter(key(s) for s in specs)
         lines.append(f"  {title}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    minutes = sum(DIAGNOSE_MINUTES[s.duration] for s in specs)
+    lines.append(
+        f"  diagnosis: about {minutes:.0f} worker-minutes at "
+        + ", ".join(f"{m:g} min per {d:g} s case" for d, m in DIAGNOSE_MINUTES.items())
+    )
     return "\n".join(lines)
 
 
