@@ -318,7 +318,14 @@ def group_table(by: dict[str, list[dict]], title: str, key: Callable[[dict], Any
     """One Markdown table: a row per (value of ``key``, draw)."""
     lines = [f"### By {title}", "", "| " + " | ".join([title, "draw", *HEAD]) + " |"]
     lines.append("|" + "---|" * (len(HEAD) + 2))
-    values = sorted({key(r) for rows in by.values() for r in rows})
+
+    def order(v: str) -> tuple[int, float, str]:
+        try:
+            return (0, float(v), v)
+        except ValueError:
+            return (1, 0.0, v)
+
+    values = sorted({key(r) for rows in by.values() for r in rows}, key=order)
     for v in [*values, "all"]:
         for draw, rows in by.items():
             sel = rows if v == "all" else [r for r in rows if key(r) == v]
