@@ -276,6 +276,7 @@ def tally(rows: Sequence[dict]) -> dict[str, Any]:
         "outside": len(out_),
         "unexplained": sum(r["outside_outcome"] == "unexplained" for r in out_),
         "wrong": sum(r["outside_outcome"] == "wrong name" for r in out_),
+        "short": sum(not r["on_level"] for r in done),
         "timeout": sum(r["status"] == "timeout" for r in done),
         "error": sum(r["status"] == "error" for r in done),
         "not_run": len(rows) - len(done),
@@ -296,6 +297,7 @@ def _cells(t: dict[str, Any]) -> list[str]:
         _frac(t["false"], t["null"]),
         _frac(t["unexplained"], t["outside"]),
         _frac(t["wrong"], t["outside"]),
+        f"{t['short']}",
         f"{t['timeout']}" + (f" (+{t['error']} err)" if t["error"] else ""),
         "–" if t["median_s"] is None else f"{t['median_s']:.0f}",
     ]
@@ -309,6 +311,7 @@ HEAD = [
     "false discoveries (nulls)",
     "outside → unexplained",
     "outside → wrong name",
+    "not reached (left out)",
     "timeouts",
     "median s/case",
 ]
