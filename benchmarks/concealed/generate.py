@@ -59,6 +59,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+# this checkout's fricjax (not another one installed in the environment), and plant.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from plant import Drive, Effect, Plant
