@@ -407,7 +407,8 @@ def report(by: dict[str, list[dict]], out: Path, header: dict[str, str], machine
 
 
 def make_plots(by: dict[str, list[dict]], out: Path) -> list[Path]:
-    """Top-1 (catalogue) per noise level and family, and time per case against length."""
+    """Top-1 (catalogue) per noise level and family with the oracle's share (black ticks),
+    time per case against length, and the confusion matrices."""
     import numpy as np
 
     from fricjax.report.plots import plt, save
@@ -416,15 +417,18 @@ def make_plots(by: dict[str, list[dict]], out: Path) -> list[Path]:
     fig, axes = plt.subplots(1, len(by), figsize=(5.5 * max(len(by), 1), 4), squeeze=False)
     for ax, (draw, rows) in zip(axes[0], by.items(), strict=False):
         for j, fam in enumerate(gen.FAMILIES):
-            rates = []
+            rates, pays = [], []
             for s in gen.SIGMAS:
                 t = tally([r for r in rows if r["family"] == fam and r["sigma"] == s])
                 rates.append(t["top1"] / t["cat"] if t["cat"] else np.nan)
-            ax.bar(np.arange(len(gen.SIGMAS)) + 0.25 * (j - 1), rates, 0.25, label=fam)
+                pays.append(t["pays"] / t["cat"] if t["cat"] else np.nan)
+            at = np.arange(len(gen.SIGMAS)) + 0.25 * (j - 1)
+            ax.bar(at, rates, 0.25, label=fam, color=f"C{j}")
+            ax.plot(at, pays, "_", ms=14, mew=2, color="k", label="oracle pays" if j == 0 else None)
         ax.set_xticks(range(len(gen.SIGMAS)), [f"{s * 1e6:g}" for s in gen.SIGMAS])
         ax.set_xlabel("σ_x [µm]")
         ax.set_ylabel("top-1 (catalogue cases)")
-        ax.set_ylim(0, 1)
+        ax.set_ylim(0, 1.05)
         ax.set_title(f"draw {draw}")
         ax.legend(fontsize=8)
     fig.tight_layout()
