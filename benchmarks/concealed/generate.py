@@ -785,7 +785,10 @@ def _one(args: tuple[str, str, int]) -> str:
     path = case_path(Path(data), draw, spec)
     if path.is_file():
         return f"{path.name}: exists"
-    signals, truth = make_case(spec, DRAWS[draw])
+    try:
+        signals, truth = make_case(spec, DRAWS[draw])
+    except (RuntimeError, ValueError, np.linalg.LinAlgError) as err:  # the others go on
+        return f"{path.name} draw {draw} {spec.family} {spec.effect}: FAILED ({err})"
     write_case(path, spec, signals, truth)
     c = truth.get("concealment", 0.0)
     return (

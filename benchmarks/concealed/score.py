@@ -175,6 +175,9 @@ def diagnose_all(
             folder = case_dir(results, draw, s.case_id(gen.DRAWS[draw]))
             if resume and finished(folder):
                 continue
+            if not gen.case_path(data, draw, s).is_file():
+                log(f"{draw} {folder.name}: no recording (generate first)")
+                continue
             todo.append((s, draw, folder))
     todo.sort(key=lambda q: (-q[0].duration, q[0].index, q[1]))
     log(f"diagnosing {len(todo)} cases with {workers} workers, timeout {timeout:g} s")
