@@ -220,3 +220,38 @@ def test_a_case_past_its_timeout_is_recorded_as_such_and_a_partial_case_is_run_a
     assert run["status"] == "timeout" and run["wall_s"] < 30.0
     assert score.finished(folder) and not (folder / "stale.txt").exists()
     assert json.loads((folder / "run.json").read_text())["status"] == "timeout"
+
+
+def test_the_report_reads_diagnosis_files_and_truths_only_from_their_folders(
+    tmp_path: Path,
+) -> None:
+    """load_rows on a tiny fake set written as the pipeline writes it (plan.json, CASE.h5
+    with /truth, RESULTS/drawA/CASE/run.json and diagnosis.json): a named catalogue effect,
+    a null with a false finding, an outside effect named wrongly and an undiagnosed case
+    tally as counted by hand, and the Markdown states them."""
+    t = np.arange(50) / 1000.0
+    cases = [
+        ("k1", "impact", "catalogue", ["impact"]),
+        ("k2", gen.NULL, "null", ["stribeck"]),
+        ("k3", "sensor_backlash", "outside", ["position_bump"]),
+        ("k4", "stribeck", "catalogue", None),
+    ]
+    rows = []
+    for i, (case, effect, kind, names) in enumerate(cases):
+        spec = gen.CaseSpec("force", effect, 5e-6, 0.05, 0.0 if kind == "null" else 7.0, i)
+        truth = {**_truth(case, effect, kind, pays=True), **spec._asdict(), "case": case}
+        signals = {"t": t, "x": np.zeros_like(t), "u": np.zeros_like(t), "mass": 10.0}
+        gen.write_case(tmp_path / "drawA" / f"{case}.h5", spec, signals, truth)
+        rows.append({"case": case, "recording": f"{case}.h5"})
+        if names is not None:
+            folder = tmp_path / "results" / "drawA" / case
+            folder.mkdir(parents=True)
+            (folder / "diagnosis.json").write_text(json.dumps(_diag(*names)))
+            (folder / "run.json").write_text(json.dumps(_run(wall=10.0 * (i + 1))))
+    (tmp_path / "drawA" / "plan.json").write_text(json.dumps({"cases": rows}))
+    by = score.load_rows(tmp_path, tmp_path / "results", ["A"])
+    t = score.tally(by["A"])
+    assert (t["cat"], t["top1"], t["null"], t["false"]) == (1, 1, 1, 1)
+    assert (t["outside"], t["wrong"], t["not_run"], t["median_s"]) == (1, 1, 1, 20.0)
+    text = "\n".join(score.group_table(by, "family", lambda r: r["family"]))
+    assert "| force | A | 1/1 | 1/1 | 1/1 | 1/1 | 1/1 | 0/1 | 1/1 | 0 | 0 | 20 |" in text
