@@ -105,6 +105,11 @@ C_RTOL = 0.03
 MAX_EVALS = 8
 SHAPE_TRIES = 2
 LM_ITERS = 36
+# Records longer than LONG_RECORD [s] get a smaller budget (a 4 s ram simulation takes ~3 s,
+# and a case must stay within minutes): fewer refit iterations and evaluations, one shape.
+LONG_RECORD = 2.0
+LM_ITERS_LONG = 15
+MAX_EVALS_LONG = 5
 FD_STEP = 1e-5  # relative finite-difference step of the refit's first Jacobian
 
 # Seed Tables 1-3, CSAA column (eq. 5 with N = 10, δ = 1); ω is drawn (the paper gives none).
@@ -535,8 +540,9 @@ class Fitter:
 
     The base Jacobian is taken once at the truth and shared by every refit of the case."""
 
-    def __init__(self, setup: Setup, transform: Callable[[np.ndarray], np.ndarray] | None = None):
+    def __init__(self, setup: Setup, iters: int = LM_ITERS):
         self.setup = setup
+        self.iters = iters
         self.names = setup.free
         self.scale = _scales(setup.p, self.names)
         self.theta0 = np.array([setup.p[n] for n in self.names])
@@ -552,7 +558,7 @@ class Fitter:
 
     def residual(self, y: np.ndarray) -> np.ndarray:
         """``y − x_b(θ̂)``: what no base refit (from the truth) absorbs of ``y``."""
-        return refit(self.base_x, y, self.jac)[1]
+        return refit(self.base_x, y, self.jac, self.iters)[1]
 
     def with_term(self, y: np.ndarray, effect: Effect, free: Sequence[str]) -> np.ndarray:
         """``y − x(θ̂, φ̂)``: base and the effect's ``free`` parameters refitted together."""
@@ -570,7 +576,7 @@ class Fitter:
         y0 = x_of(q0)
         cols = [(x_of(np.eye(q0.size)[nb + i] * FD_STEP) - y0) / FD_STEP for i in range(len(free))]
         jac = np.concatenate([self.jac, np.stack(cols, axis=1)], axis=1)
-        return refit(x_of, y, jac)[1]
+        return refit(x_of, y, jac, self.iters)[1]
 
 
 def rms(r: np.ndarray) -> float:
@@ -595,7 +601,7 @@ def oracle(
 
 
 def scale_to(
-    target: float, shape: Shape, c_of: Callable[[float], float]
+    target: float, shape: Shape, c_of: Callable[[float], float], max_evals: int = MAX_EVALS
 ) -> tuple[float, float, int, bool]:
     """The amplitude at which ``c_of`` hits ``target`` within C_RTOL: log-secant from
     ``shape.a0`` (c is close to a power of a), kept in (0, a_max]; once the target is
@@ -604,7 +610,7 @@ def scale_to(
     reached); not reached: the evaluation nearest the target."""
     pts: list[tuple[float, float]] = []
     a = shape.a0
-    for k in range(MAX_EVALS):
+    for k in range(max_evals):
         c = c_of(a)
         pts.append((a, c))
         if abs(c / target - 1.0) < C_RTOL:
@@ -690,7 +696,8 @@ def make_case(
         x_clean, u = recorded(setup, Effect("none", {}))
         truth.update(params={}, concealment=0.0, reached=True)
     else:
-        fitter = Fitter(setup)
+        long = spec.duration > LONG_RECORD
+        fitter = Fitter(setup, LM_ITERS_LONG if long else LM_ITERS)
 
         def c_of(shape: Shape) -> Callable[[float], float]:
             def c(a: float) -> float:
@@ -703,12 +710,15 @@ def make_case(
             return c
 
         # where the base absorbs the effect's first shape, the shape is drawn again
-        for tries in range(1, (SHAPE_TRIES if spec.effect in SHAPED else 1) + 1):
+        for tries in range(1, (SHAPE_TRIES if spec.effect in SHAPED and not long else 1) + 1):
             shape = draw_shape(spec.effect, rng, setup.p, x_base, v_base, spec.duration)
-            a, c, evals, reached = scale_to(spec.level, shape, c_of(shape))
+            a, c, evals, reached = scale_to(
+                spec.level, shape, c_of(shape), MAX_EVALS_LONG if long else MAX_EVALS
+            )
             truth["shape_tries"] = tries
             if reached:
                 break
+        truth["refit_iters"] = fitter.iters
         effect = Effect(spec.effect, shape.params(a))
         x_clean, u = recorded(setup, effect)
         truth.update(
