@@ -789,12 +789,14 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
-def _one(args: tuple[str, str, int]) -> str:
-    data, draw, index = args
+def _one(args: tuple[str, str, int, float]) -> str:
+    data, draw, index, deadline = args
     spec = next(s for s in plan(DRAWS[draw]) if s.index == index)
     path = case_path(Path(data), draw, spec)
     if path.is_file():
         return f"{path.name}: exists"
+    if deadline and time.time() > deadline:
+        return f"{path.name}: not started (--start-until)"
     try:
         signals, truth = make_case(spec, DRAWS[draw])
     except (RuntimeError, ValueError, np.linalg.LinAlgError) as err:  # the others go on
@@ -807,9 +809,13 @@ def _one(args: tuple[str, str, int]) -> str:
     )
 
 
-def generate(data: Path, draws: Sequence[str], workers: int = 1, limit: int = 0) -> list[Path]:
+def generate(
+    data: Path, draws: Sequence[str], workers: int = 1, limit: int = 0, start_until: float = 0.0
+) -> list[Path]:
     """Write every case of the draws' plans missing from ``data`` (``limit`` > 0: only the
-    first ``limit`` of each plan); also ``data/draw<X>/plan.json``. Returns the paths."""
+    first ``limit`` of each plan; ``start_until`` > 0: start no case after that many
+    seconds); also ``data/draw<X>/plan.json``. Returns the paths."""
+    deadline = time.time() + start_until if start_until > 0 else 0.0
     from fricjax.io.atomic import write_text_atomic
 
     jobs, paths = [], []
@@ -835,7 +841,7 @@ def generate(data: Path, draws: Sequence[str], workers: int = 1, limit: int = 0)
         for s in specs:
             paths.append(case_path(data, draw, s))
             if not paths[-1].is_file():
-                jobs.append((str(data), draw, s.index))
+                jobs.append((str(data), draw, s.index, deadline))
     if workers > 1 and len(jobs) > 1:
         from multiprocessing import get_context
 
@@ -855,6 +861,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--draws", default="A,B")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--limit", type=int, default=0, help="only the first N cases of each draw")
+    ap.add_argument("--start-until", type=float, default=0.0, help="start no case after S s")
     args = ap.parse_args(argv)
     draws = [d.strip() for d in args.draws.split(",") if d.strip()]
     for d in draws:
@@ -864,7 +871,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             return 2
         print(f"draw {d} (seed {DRAWS[d]}): " + plan_table(plan(DRAWS[d])))
-    generate(Path(args.data), draws, args.workers, args.limit)
+    generate(Path(args.data), draws, args.workers, args.limit, args.start_until)
     return 0
 
 

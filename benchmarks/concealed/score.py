@@ -528,7 +528,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--limit", type=int, default=0, help="only the first N cases of each draw")
     ap.add_argument(
-        "--start-until", type=float, default=0.0, help="start no case after this many s"
+        "--start-until",
+        type=float,
+        default=0.0,
+        help="start no case (generation or diagnosis) after this many s of the stage",
     )
     args = ap.parse_args(argv)
     draws = [d.strip() for d in args.draws.split(",") if d.strip()]
@@ -542,7 +545,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for d in draws:
         print(f"draw {d} (seed {gen.DRAWS[d]}): " + gen.plan_table(gen.plan(gen.DRAWS[d])))
     if args.stage in ("all", "generate"):
-        gen.generate(data, draws, args.workers, args.limit)
+        gen.generate(data, draws, args.workers, args.limit, args.start_until)
     if args.stage in ("all", "diagnose"):
         diagnose_all(
             data, results, draws, args.workers, args.timeout, args.resume, args.limit,
