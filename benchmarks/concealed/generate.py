@@ -842,6 +842,9 @@ def generate(
             paths.append(case_path(data, draw, s))
             if not paths[-1].is_file():
                 jobs.append((str(data), draw, s.index, deadline))
+    # the longest records first: with many workers the slowest cases must not start last
+    durations = {(d, s.index): s.duration for d in draws for s in plan(DRAWS[d])}
+    jobs.sort(key=lambda j: -durations[(j[1], j[2])])
     if workers > 1 and len(jobs) > 1:
         from multiprocessing import get_context
 
