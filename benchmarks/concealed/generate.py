@@ -308,7 +308,7 @@ def base_plant(spec: CaseSpec, rng: np.random.Generator) -> tuple[dict[str, floa
     k = rng.uniform(3e3, 1.5e4)
     return (
         p,
-        Drive("spring", k=k, vd=rng.uniform(0.01, 0.03), d0=rng.uniform(0.7, 0.95) * p["Fs"] / k),
+        Drive("spring", k=k, vd=rng.uniform(0.01, 0.03), d0=rng.uniform(0.9, 0.98) * p["Fs"] / k),
         mass,
     )
 
