@@ -86,6 +86,11 @@ def settings_of(config: Path) -> dict[str, Any]:
     }
 
 
+#: Seconds a diagnosis is given, below the scorer's kill, to write what it has when it stops
+#: at its own time limit (the report and plots of a 4 s record take ~10 s on a loaded core).
+REPORT_MARGIN = 30.0
+
+
 def case_dir(results: Path, draw: str, case: str) -> Path:
     return results / f"draw{draw}" / case
 
@@ -95,10 +100,16 @@ def finished(folder: Path) -> bool:
 
 
 def run_case(
-    recording: Path, config: Path, folder: Path, timeout: float, context: dict[str, Any]
+    recording: Path,
+    config: Path,
+    folder: Path,
+    timeout: float,
+    context: dict[str, Any],
+    time_limit: float,
 ) -> dict[str, Any]:
-    """``fricjax diagnose RECORDING --config CONFIG --out FOLDER`` in a new process group,
-    killed (the whole group) after ``timeout`` s; writes and returns ``FOLDER/run.json``."""
+    """``fricjax diagnose RECORDING --config CONFIG --out FOLDER --time-limit T`` in a new
+    process group, killed (the whole group) after ``timeout`` s; writes and returns
+    ``FOLDER/run.json``."""
     from fricjax.io.atomic import write_text_atomic
 
     if folder.exists():  # a partial case: cleared, run again
@@ -114,6 +125,8 @@ def run_case(
         str(config),
         "--out",
         str(folder),
+        "--time-limit",
+        f"{time_limit:g}",
     ]
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     load = os.getloadavg()
@@ -159,10 +172,14 @@ def diagnose_all(
     limit: int = 0,
     start_until: float = 0.0,
     log: Callable[[str], None] = print,
+    time_limit: float = 0.0,
 ) -> list[dict[str, Any]]:
     """Every case of the draws' plans (the first ``limit`` of each where > 0) not finished
     in ``results`` (all of them without ``resume``), longest record first; returns the runs
-    made now."""
+    made now. Each diagnosis gets its own time limit ``time_limit`` (default: the timeout
+    less :data:`REPORT_MARGIN`), so that a slow case ends with what it tested and what it
+    skipped instead of being killed with nothing."""
+    time_limit = time_limit if time_limit > 0 else max(timeout - REPORT_MARGIN, 1.0)
     import jax
 
     state = git_state()
@@ -195,10 +212,11 @@ def diagnose_all(
             "workers": workers,
             "jax_platforms": os.environ.get("JAX_PLATFORMS", ""),
             "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "diagnose_time_limit_s": time_limit,
             **configs[spec.family],
         }
         rec = gen.case_path(data, draw, spec)
-        run = run_case(rec, gen.CONFIGS[spec.family], folder, timeout, context)
+        run = run_case(rec, gen.CONFIGS[spec.family], folder, timeout, context, time_limit)
         log(f"{draw} {folder.name} T={spec.duration:g}s {run['status']} {run['wall_s']:.0f} s")
         return run
 
@@ -526,6 +544,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=True,
         help="keep finished cases (default); --no-resume runs every case again",
     )
+    ap.add_argument(
+        "--time-limit",
+        type=float,
+        default=0.0,
+        help="diagnose --time-limit per case (default: --timeout less 30 s)",
+    )
     ap.add_argument("--limit", type=int, default=0, help="only the first N cases of each draw")
     ap.add_argument(
         "--start-until",
@@ -549,7 +573,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.stage in ("all", "diagnose"):
         diagnose_all(
             data, results, draws, args.workers, args.timeout, args.resume, args.limit,
-            args.start_until,
+            args.start_until, time_limit=args.time_limit,
         )  # fmt: skip
     if args.stage in ("all", "report"):
         from fricjax.bench.machine import describe
