@@ -41,7 +41,7 @@ import numpy as np
 from fricjax.config import Config
 from fricjax.data.recording import Recording
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import atomic_path, write_text_atomic
+from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.model.closed_loop import CascadePD
 from fricjax.params import check_known
 from fricjax.validate import _named, _problem, simulate_model
@@ -202,14 +202,11 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
     """
     from fricjax.report.simulation_plots import plot_simulation
 
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise FricjaxError(f"{where(out)}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out)
     meta = report.as_dict()
     json_path = write_text_atomic(out / "simulation.json", json.dumps(meta, indent=2) + "\n")
-    h5_path = out / "simulation.h5"
-    with atomic_path(h5_path) as tmp, h5py.File(tmp, "w") as f:
+
+    def fill(f: h5py.File) -> None:
         f.attrs["format"] = FORMAT
         f.attrs["recording"] = report.recording
         f.attrs["mode"] = report.mode
@@ -228,6 +225,8 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
             for name, y in series.items():
                 ds = g.create_dataset(name, data=np.asarray(y, dtype=np.float64))
                 ds.attrs["unit"] = SIGNAL_UNITS[name]
+
+    h5_path = write_hdf5_atomic(out / "simulation.h5", fill)
     png_path = plot_simulation(report, out / "simulation.png")
     return report._replace(files={"json": json_path, "h5": h5_path, "png": png_path})
 

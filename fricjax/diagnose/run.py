@@ -56,7 +56,7 @@ from fricjax.diagnose.simulation_test import (
     simulation_test,
 )
 from fricjax.identify import IdentifySettings, identify
-from fricjax.io.atomic import atomic_path, write_text_atomic
+from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
 from fricjax.params import ParamSpec
@@ -1285,8 +1285,7 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
     """Write diagnosis.json, report.md, residual plots and models.h5 into ``out_dir``."""
     from fricjax.diagnose.report import markdown_report, residual_plots
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out_dir)
     paths = {
         "json": write_text_atomic(
             out / "diagnosis.json", json.dumps(diag.as_json(), indent=2) + "\n"
@@ -1300,7 +1299,8 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
 
 def _write_models(diag: Diagnosis, path: Path) -> Path:
     sel = diag.selection
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+
+    def fill(f: h5py.File) -> None:
         f.attrs["format"] = "fricjax-diagnosis-models-v1"
         f.attrs["recording"] = diag.recording
         for label, (model, spec, theta) in (
@@ -1315,4 +1315,5 @@ def _write_models(diag: Diagnosis, path: Path) -> Path:
             g["values"] = np.array(list(named.values()), dtype=np.float64)
             g["free"] = np.array([spec[n].free for n in named], dtype=bool)
             g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
-    return path
+
+    return write_hdf5_atomic(path, fill)
