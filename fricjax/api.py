@@ -15,6 +15,7 @@ from fricjax.config import Config, load_config
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
+from fricjax.io.atomic import check_outputs
 from fricjax.params import check_known
 from fricjax.problem import Problem, build_problem
 
@@ -71,6 +72,8 @@ def inspect_recording(
     """Summary of a recording and a PNG of x, v, a and m·a (preprocessed as configured)."""
     from fricjax.report.plots import plot_signals
 
+    out = Path(png) if png else Path(recording).with_suffix(".png")
+    check_outputs([out], {"recording": recording, "--config": config}, "--png")
     rec = read_recording(recording, mass=mass)
     table = load_config(config).table("preprocess") if config else {}
     settings = PreprocessSettings.from_dict(table, source=str(config or "defaults"))
@@ -99,7 +102,6 @@ def inspect_recording(
     }
     if m is not None:
         summary["m·a range [N]"] = f"{force.min():.4g} .. {force.max():.4g}"
-    out = Path(png) if png else Path(recording).with_suffix(".png")
     fig = plot_signals(d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out)
     return summary, fig
 
@@ -220,7 +222,6 @@ def identify_recording(
     # one identification per call (and per CLI process): compilation, not the run, is
     # what the user waits for, so its programs are compiled for compile speed
     settings = dataclasses.replace(settings, fast_compile=True)
-    run = identify(problem, settings, on_level=on_level)
     path = (
         Path(out)
         if out
@@ -228,6 +229,8 @@ def identify_recording(
             f"{Path(recording).stem}_{settings.method}_s{settings.seed}.results.h5"
         )
     )
+    check_outputs([path], {"recording": recording, "--config": cfg.source}, "--out")
+    run = identify(problem, settings, on_level=on_level)
     attrs = provenance(
         kind="identify",
         recording_name=rec.name,
@@ -264,6 +267,14 @@ def sweep_recording(
     from fricjax.io.results import ResultsFile, provenance, write_results
     from fricjax.report.tables import fmt, format_table
 
+    path = Path(out)
+    check_outputs([path], {"recording": recording, "--config": config}, "--out")
+    if not (methods and schedules and alphas) or restarts < 1:
+        raise FricjaxError(
+            f"{where('sweep')}: nothing to run: --methods, --schedules and --alphas each "
+            f"need at least one entry and --restarts at least 1 (got {len(methods)} "
+            f"methods, {len(schedules)} schedules, {len(alphas)} alphas, {restarts} restarts)"
+        )
     rec, cfg, problem = load(recording, config, mass=mass)
     attrs = provenance(
         kind="sweep",
@@ -274,7 +285,6 @@ def sweep_recording(
         config_path=cfg.source,
     )
     runs = []
-    path = Path(out)
     try:
         for method in methods:
             for schedule in schedules:
@@ -331,9 +341,14 @@ def diagnose_recording(
     ignores that group.
     """
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
-    from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
+    from fricjax.diagnose.run import OUTPUT_FILES, DiagnoseSettings, diagnose, write_diagnosis
     from fricjax.identify import CLI_SOURCE, IdentifySettings
 
+    check_outputs(
+        [Path(out) / name for name in OUTPUT_FILES],
+        {"recording": recording, "--config": config, "--validation": validation},
+        "--out",
+    )
     _, cfg, problem = load(recording, config, mass=mass)
     # the base fit runs once per diagnosis: compile for compile speed (see identify_recording)
     ident = dataclasses.replace(
@@ -393,6 +408,19 @@ def simulate_recording(
     from fricjax.simulation import simulate_against, write_simulation
     from fricjax.validate import _config_from_results, parse_controller
 
+    if out is not None:
+        from fricjax.simulation import OUTPUT_FILES
+
+        check_outputs(
+            [Path(out) / name for name in OUTPUT_FILES],
+            {
+                "recording": None if isinstance(recording, Recording) else recording,
+                "--results": results,
+                "--params": None if isinstance(params, dict) else params,
+                "--config": None if isinstance(config, Config) else config,
+            },
+            "--out",
+        )
     if (results is None) == (params is None):
         raise FricjaxError(
             f"{where('simulate', '--results/--params')}: give exactly one of them "

@@ -85,6 +85,9 @@ def import_mat_cmd(
     """Import a .mat file onto the recording layout (jittered time base resampled)."""
     from fricjax.data.importers import import_mat
     from fricjax.data.recording import write_recording
+    from fricjax.io.atomic import check_outputs
+
+    check_outputs([out], {"MAT": mat}, "OUT")
 
     mapping: dict[str, str] = {}
     for pair in map_.split(","):

@@ -191,6 +191,10 @@ def simulate_against(
     )
 
 
+#: What :func:`write_simulation` writes into its folder.
+OUTPUT_FILES = ("simulation.json", "simulation.h5", "simulation.png")
+
+
 def write_simulation(report: SimulationReport, out: str | Path) -> SimulationReport:
     """Write ``out/simulation.json`` (metrics), ``out/simulation.h5`` (series) and
     ``out/simulation.png`` (figure), each atomically; returns the report with ``files``.
@@ -204,7 +208,8 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
 
     out = make_folder(out)
     meta = report.as_dict()
-    json_path = write_text_atomic(out / "simulation.json", json.dumps(meta, indent=2) + "\n")
+    json_name, h5_name, png_name = OUTPUT_FILES
+    json_path = write_text_atomic(out / json_name, json.dumps(meta, indent=2) + "\n")
 
     def fill(f: h5py.File) -> None:
         f.attrs["format"] = FORMAT
@@ -226,8 +231,8 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
                 ds = g.create_dataset(name, data=np.asarray(y, dtype=np.float64))
                 ds.attrs["unit"] = SIGNAL_UNITS[name]
 
-    h5_path = write_hdf5_atomic(out / "simulation.h5", fill)
-    png_path = plot_simulation(report, out / "simulation.png")
+    h5_path = write_hdf5_atomic(out / h5_name, fill)
+    png_path = plot_simulation(report, out / png_name)
     return report._replace(files={"json": json_path, "h5": h5_path, "png": png_path})
 
 

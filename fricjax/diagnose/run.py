@@ -1281,19 +1281,22 @@ def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
 # -- output --------------------------------------------------------------------------------
 
 
+#: The files :func:`write_diagnosis` writes under fixed names (plus ``residual_*.png``).
+OUTPUT_FILES = ("diagnosis.json", "models.h5", "report.md")
+
+
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
     """Write diagnosis.json, report.md, residual plots and models.h5 into ``out_dir``."""
     from fricjax.diagnose.report import markdown_report, residual_plots
 
     out = make_folder(out_dir)
+    json_name, models_name, report_name = OUTPUT_FILES
     paths = {
-        "json": write_text_atomic(
-            out / "diagnosis.json", json.dumps(diag.as_json(), indent=2) + "\n"
-        )
+        "json": write_text_atomic(out / json_name, json.dumps(diag.as_json(), indent=2) + "\n")
     }
     paths.update(residual_plots(diag, out))
-    paths["models"] = _write_models(diag, out / "models.h5")
-    paths["report"] = write_text_atomic(out / "report.md", markdown_report(diag, paths))
+    paths["models"] = _write_models(diag, out / models_name)
+    paths["report"] = write_text_atomic(out / report_name, markdown_report(diag, paths))
     return paths
 
 

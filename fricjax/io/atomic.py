@@ -18,7 +18,7 @@ import errno
 import io
 import os
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import h5py
@@ -147,3 +147,50 @@ def hdf5_bytes(fill: Callable[[h5py.File], None]) -> bytes:
 def write_hdf5_atomic(path: str | Path, fill: Callable[[h5py.File], None]) -> Path:
     """An HDF5 file built in memory by ``fill(f)``, written atomically."""
     return write_bytes_atomic(path, hdf5_bytes(fill))
+
+
+Inputs = Mapping[str, "str | Path | None"]
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if a.exists() and b.exists():
+        return os.path.samefile(a, b)  # hard links and symlinks included
+    return a.resolve() == b.resolve()
+
+
+def _writable_ancestor(path: Path) -> Path | None:
+    """The nearest existing folder above ``path`` if it is not writable, else None."""
+    for above in path.parents:
+        if above.is_dir():
+            return None if os.access(above, os.W_OK | os.X_OK) else above
+    return None
+
+
+def check_outputs(outputs: list[Path], inputs: Inputs, flag: str) -> None:
+    """Refuse, before any work, outputs that would replace an input or cannot be written.
+
+    ``outputs``: the files a command will write; ``inputs``: what the user gave, by the
+    flag or argument that named it (None: not given); ``flag``: the option naming the
+    outputs. Inputs are compared as files on disk (``os.path.samefile``: a symlink or
+    hard link to an input counts as the input).
+
+    Raises:
+        FricjaxError: an output is an input, or an existing folder, or a file stands
+            where its folder should be (exit 2).
+        OutputFault: the folder exists but this user may not write into it (exit 1).
+    """
+    for out in map(Path, outputs):
+        for label, given in inputs.items():
+            if given is not None and _same_file(out, Path(given)):
+                raise FricjaxError(
+                    f"{where(out)}: {flag} would overwrite the input {label}; "
+                    "choose another output path"
+                )
+        if out.is_dir():
+            raise FricjaxError(f"{where(out)}: {flag}: is a folder; give a file name")
+        for above in out.parents:
+            if above.exists() and not above.is_dir():
+                raise FricjaxError(f"{where(above)}: {flag}: is a file, not a folder")
+        locked = _writable_ancestor(out)
+        if locked is not None:
+            raise _fault(out, PermissionError(errno.EACCES, os.strerror(errno.EACCES)))
