@@ -34,6 +34,7 @@ from jaxtyping import Array
 
 from fricjax.errors import FricjaxError, where
 from fricjax.io.results import RunResult
+from fricjax.limits import check_chains
 from fricjax.output_error import OutputErrorSettings, fit_output_error
 from fricjax.problem import Problem
 from fricjax.refine import (
@@ -240,6 +241,7 @@ def identify(
     """Search, refine and qualify the parameters of ``problem`` (see module docstring)."""
     settings = settings or IdentifySettings()
     spec = problem.spec
+    check_chains(settings.chains, problem.n, spec.n_free, settings.anneal.max_levels, "identify")
     lower, upper = spec.lower, spec.upper
     start = time.perf_counter()
     sep = separate(problem) if settings.separable else None

@@ -42,6 +42,7 @@ from fricjax.config import Config
 from fricjax.data.recording import Recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
+from fricjax.limits import check_substeps
 from fricjax.model.closed_loop import CascadePD
 from fricjax.params import check_known
 from fricjax.validate import _named, _problem, simulate_model
@@ -143,6 +144,7 @@ def simulate_against(
     """
     if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
         raise FricjaxError(f"{where('simulate', 'substeps')}: must be an integer >= 1")
+    check_substeps(substeps, rec.n, "simulate")
     src = rec.path or rec.name
     if controller is not None and rec.r is None:
         raise FricjaxError(

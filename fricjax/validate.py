@@ -50,6 +50,7 @@ from fricjax.data.decimate import antialias_kernel, check_factor, decimate
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import check_outputs, write_text_atomic
+from fricjax.limits import check_decimation
 from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
 from fricjax.model.simulate import simulate
 from fricjax.problem import Problem, build_problem, needs_input
@@ -159,6 +160,7 @@ def equation_error(
     """IDIM equation-error metrics of ``params`` on ``rec`` (module docstring)."""
     q = check_factor(decimate_by, "validate")
     problem = _problem(rec, cfg, params)
+    check_decimation(q, problem.n, "validate")
     p = _named(problem, params, source)
     sig = problem.signals
     a = jnp.asarray(problem.a)
