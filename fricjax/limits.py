@@ -11,11 +11,11 @@ estimate, so a user can tell a typo (``--chains 1000000000``) from a run that is
   operating system reports available cannot run, and the run is refused before it
   allocates anything (a larger count would swap, then be killed).
 - **RK4 sub-steps** (:func:`check_substeps`): memory is ``O(n)``, time is
-  ``n × substeps`` sub-steps. ``MAX_RK4_STEPS`` = 10⁹ sub-steps is over a minute of
-  pure stepping at the ~10⁷ sub-steps/s a scan of a scalar RK4 reaches on one CPU core,
-  and past it more sub-steps buy nothing: the truncation error of RK4 falls as
-  ``substeps⁻⁴``, so from the default 4 to 1000 sub-steps it is already 4·10⁹ times
-  smaller, at float64 rounding for any trajectory the sampling resolves.
+  ``n × substeps`` sub-steps at about ``RK4_STEPS_PER_S`` (measured for the paper model:
+  ~10⁴/s on a loaded 2-core machine,
+  docs/robustness.md). ``MAX_RK4_STEPS`` = 10⁸ is hours of stepping at that rate, while
+  RK4's truncation error falls as ``substeps⁻⁴``: 4 → 64 sub-steps already divides it by
+  65 536, so a run past the cap is a typo rather than a need.
 - **Decimation** (:func:`check_decimation`): the zero-phase anti-alias filter of
   :func:`fricjax.data.decimate.antialias_kernel` has a half length of at least
   ``HALF_LENGTH_PER_Q × q`` samples (measured: 1545 at q = 10, 15222 at q = 100, never
@@ -34,7 +34,9 @@ F64 = 8
 #: (x, v, a, u, force, residual and the terms' intermediates).
 SIGNALS = 8
 #: Total RK4 sub-steps (``n × substeps``) a simulation may take (module docstring).
-MAX_RK4_STEPS = 10**9
+MAX_RK4_STEPS = 10**8
+#: Measured RK4 sub-steps per second of the paper model (order of magnitude, for messages).
+RK4_STEPS_PER_S = 10**4
 #: Lower bound on the anti-alias filter's half length per unit of the factor q.
 HALF_LENGTH_PER_Q = 152
 
@@ -91,9 +93,10 @@ def check_substeps(substeps: int, n_samples: int, source: object) -> None:
     if steps > MAX_RK4_STEPS:
         raise FricjaxError(
             f"{where(source, 'substeps')}: {substeps} sub-steps over {n_samples} samples is "
-            f"{steps:.3g} RK4 steps, more than the {MAX_RK4_STEPS:.0e} allowed (minutes of "
-            "stepping that cannot change the answer: RK4's error falls as substeps^-4); use "
-            f"at most {max(MAX_RK4_STEPS // max(n_samples - 1, 1), 1)}"
+            f"{steps:.3g} RK4 steps, about {steps / RK4_STEPS_PER_S / 3600:.3g} h at "
+            f"~{RK4_STEPS_PER_S:.0e} steps/s, more than the {MAX_RK4_STEPS:.0e} allowed "
+            "(RK4's error falls as substeps^-4: a few dozen are plenty); use at most "
+            f"{max(MAX_RK4_STEPS // max(n_samples - 1, 1), 1)}"
         )
 
 
