@@ -257,11 +257,12 @@ def sweep_recording(
     out: str | Path = "sweep.h5",
     mass: float | None = None,
     on_run: Any = None,
-) -> tuple[str, Path]:
+) -> tuple[str, Path, bool]:
     """``fricjax sweep``: every method x schedule x alpha x restart into one results file.
 
     All runs share the problem and hence the compiled cost; the file is rewritten after
-    each run, so an interrupted sweep keeps every finished run.
+    each run, so an interrupted sweep keeps every finished run. Returns the ranked table,
+    the file and whether Ctrl-C cut the sweep short (after at least one run).
     """
     from fricjax.identify import IdentifySettings, identify
     from fricjax.io.results import ResultsFile, provenance, write_results
@@ -285,6 +286,7 @@ def sweep_recording(
         config_path=cfg.source,
     )
     runs = []
+    interrupted = False
     try:
         for method in methods:
             for schedule in schedules:
@@ -309,6 +311,7 @@ def sweep_recording(
     except KeyboardInterrupt:
         if not runs:
             raise
+        interrupted = True
     rows = [
         (
             r.label,
@@ -323,7 +326,7 @@ def sweep_recording(
     table = format_table(
         rows, ("run", "cost [N²]", "EMS [N²]", "before refine", "levels", "time [s]")
     )
-    return table, path
+    return table, path, interrupted
 
 
 def diagnose_recording(

@@ -6,6 +6,7 @@ Every command maps onto one API call; a user mistake (:class:`FricjaxError`) pri
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -210,6 +211,16 @@ def identify(
         typer.echo("", err=True)
     typer.echo(run_summary(result, recording=recording))
     typer.echo(f"results: {path}")
+    if result.attrs.get("interrupted"):
+        stage = (
+            "refiner" if not result.attrs.get("refined") and result.attrs["levels"] else "search"
+        )
+        typer.echo(
+            f"interrupted during the {stage}: {path} holds the best point so far "
+            "(interrupted = True)",
+            err=True,
+        )
+        raise typer.Exit(EXIT["partial"])
 
 
 @app.command()
@@ -248,7 +259,7 @@ def sweep(
         except ValueError:
             raise FricjaxError(f"sweep: cannot parse {text!r}") from None
 
-    table, path = sweep_recording(
+    table, path, interrupted = sweep_recording(
         recording,
         config,
         methods=parse(methods, str),
@@ -264,6 +275,9 @@ def sweep(
     )
     typer.echo(table)
     typer.echo(f"results: {path}")
+    if interrupted:
+        typer.echo(f"interrupted: {path} holds the runs finished so far", err=True)
+        raise typer.Exit(EXIT["partial"])
 
 
 @app.command()
@@ -564,11 +578,22 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(EXIT["machine"])
     except (KeyboardInterrupt, Abort):
         typer.echo("interrupted", err=True)
-        sys.exit(EXIT["interrupted"])
+        _exit_now(EXIT["interrupted"])
+    if code == EXIT["interrupted"]:
+        typer.echo("interrupted", err=True)
+    if code in (EXIT["interrupted"], EXIT["partial"]):
+        _exit_now(code)
     if isinstance(code, int) and code != 0:
-        if code == EXIT["interrupted"]:
-            typer.echo("interrupted", err=True)
         sys.exit(code)
+
+
+def _exit_now(code: int) -> None:
+    """End an interrupted run at once: the interpreter's teardown would wait for (or,
+    with XLA still compiling or running in a worker thread, crash under) work the user
+    asked to stop. Every output is already complete on disk (written atomically)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":
