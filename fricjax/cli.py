@@ -212,14 +212,12 @@ def identify(
     typer.echo(run_summary(result, recording=recording))
     typer.echo(f"results: {path}")
     if result.attrs.get("interrupted"):
-        stage = (
-            "refiner" if not result.attrs.get("refined") and result.attrs["levels"] else "search"
+        kept = (
+            "the polished point (uncertainty not computed)"
+            if result.attrs.get("refined")
+            else "the search's best point, not polished"
         )
-        typer.echo(
-            f"interrupted during the {stage}: {path} holds the best point so far "
-            "(interrupted = True)",
-            err=True,
-        )
+        typer.echo(f"interrupted: {path} holds {kept} (interrupted = True)", err=True)
         raise typer.Exit(EXIT["partial"])
 
 

@@ -262,7 +262,11 @@ def identify(
             source=spec.source,
         )
     else:
-        search = _separable_search(sep, settings, on_level)
+        # one compiled program: Ctrl-C reaches Python only through _interruptible, and
+        # with nothing found yet it ends the run (nothing to keep)
+        search = _interruptible(
+            lambda: _separable_search(sep, settings, on_level), "fricjax-search"
+        )
     best_x, cost_search = np.asarray(search.best_x), float(search.best_cost)
     best_cost = cost_search
     interrupted, refined = bool(search.interrupted), False

@@ -197,7 +197,7 @@ def test_ctrl_c_in_the_polish_keeps_the_search_best_and_exits_3(
     with pytest.raises(SystemExit) as exc:
         main(args)
     assert exc.value.code == EXIT["partial"] == 3
-    assert "interrupted during the refiner" in capsys.readouterr().err
+    assert "holds the search's best point, not polished" in capsys.readouterr().err
     with h5py.File(res) as f:
         run = f["runs/rdsa"]
         assert run.attrs["interrupted"] and not run.attrs["refined"]
