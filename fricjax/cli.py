@@ -534,10 +534,12 @@ def _root(
 ) -> None:
     """Identify friction models from recorded motion (JAX), and find what they leave out.
 
-    Exit status: 0 done; 1 the machine refused (disk full, folder not writable); 2 a
-    mistake in the command line or an input (one line names it); 3 interrupted (Ctrl-C)
-    after writing partial results, which say ``interrupted = True``; 130 interrupted
-    before anything was written.
+    Exit status:
+    0 done;
+    1 the machine refused an output (disk full, folder not writable);
+    2 a mistake in the command line or an input (one line names it);
+    3 interrupted (Ctrl-C) after writing partial results (marked interrupted);
+    130 interrupted before anything was written.
     """
 
 
