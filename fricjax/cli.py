@@ -563,7 +563,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         # Outside standalone mode typer returns the code of a typer.Exit (and turns
         # Ctrl-C into 130) instead of calling sys.exit, and raises usage errors to here.
-        code = app(args=argv, standalone_mode=False)
+        code = app(args=argv, prog_name="fricjax", standalone_mode=False)
     except NoArgsIsHelpError as err:
         typer.echo(err.format_message())
         sys.exit(EXIT["ok"])
