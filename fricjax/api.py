@@ -276,6 +276,11 @@ def sweep_recording(
             f"need at least one entry and --restarts at least 1 (got {len(methods)} "
             f"methods, {len(schedules)} schedules, {len(alphas)} alphas, {restarts} restarts)"
         )
+    if seed + restarts > 2**64:  # the seeds run are seed … seed + restarts − 1
+        raise FricjaxError(
+            f"{where('sweep', '--seed')}: seeds {seed} … {seed + restarts - 1} pass the "
+            "64-bit key's largest, 2**64 − 1"
+        )
     rec, cfg, problem = load(recording, config, mass=mass)
     attrs = provenance(
         kind="sweep",

@@ -125,6 +125,7 @@ def test_an_output_never_replaces_an_input(tmp_path: Path, args: list[str], need
             "anti-alias filter",
         ),
         (["sweep", TWIN, "--methods", ","], "nothing to run"),
+        (["sweep", TWIN, "--seed", str(2**64 - 1), "--restarts", "2"], "64-bit key"),
     ],
 )
 def test_sizes_that_cannot_run_are_refused_with_the_estimate(
