@@ -16,6 +16,7 @@ from fricjax.data.noise import estimate_noise
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
+from fricjax.io.atomic import check_outputs
 from fricjax.params import check_known
 from fricjax.problem import Problem, build_problem
 
@@ -115,6 +116,7 @@ def init_config(
     (:mod:`fricjax.scaffold`), written atomically to ``out``; returns (text, path)."""
     from fricjax.scaffold import scaffold_config, write_scaffold
 
+    check_outputs([Path(out)], {"recording": recording}, "--out")
     text = scaffold_config(
         recording,
         drive=drive,
@@ -141,6 +143,7 @@ def merge_sensor_file(
     from fricjax.data.recording import write_recording
     from fricjax.data.resample import merge_sensor
 
+    check_outputs([Path(out)], {"MOTION": motion, "SENSOR": sensor}, "--out")
     rec = merge_sensor(motion, sensor, column=column, as_signal=as_signal, u_unit=u_unit, mass=mass)
     return rec, write_recording(rec, out)
 
@@ -165,6 +168,8 @@ def inspect_recording(
     from fricjax.report.plots import plot_signals
     from fricjax.units import axis_units
 
+    out = Path(png) if png else Path(recording).with_suffix(".png")
+    check_outputs([out], {"recording": recording, "--config": config}, "--png")
     rec = read_recording(recording, mass=mass)
     cfg = load_config(config) if config else None
     table = cfg.table("preprocess") if cfg else {}
@@ -204,7 +209,6 @@ def inspect_recording(
         summary["F noise"] = estimate_noise(rec.F).describe(units.force)
     if rec.u is not None:
         summary["u noise"] = estimate_noise(rec.u).describe(rec.u_unit or "(u unit)")
-    out = Path(png) if png else Path(recording).with_suffix(".png")
     fig = plot_signals(
         d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out, units=units
     )
@@ -328,8 +332,6 @@ def identify_recording(
     # one identification per call (and per CLI process): compilation, not the run, is
     # what the user waits for, so its programs are compiled for compile speed
     settings = dataclasses.replace(settings, fast_compile=True)
-    run = identify(problem, settings, on_level=on_level)
-    run.attrs["axis"] = cfg.axis.kind  # labels of the summary and of show (fricjax.units)
     path = (
         Path(out)
         if out
@@ -337,6 +339,9 @@ def identify_recording(
             f"{Path(recording).stem}_{settings.method}_s{settings.seed}.results.h5"
         )
     )
+    check_outputs([path], {"recording": recording, "--config": cfg.source}, "--out")
+    run = identify(problem, settings, on_level=on_level)
+    run.attrs["axis"] = cfg.axis.kind  # labels of the summary and of show (fricjax.units)
     attrs = provenance(
         kind="identify",
         recording_name=rec.name,
@@ -363,16 +368,30 @@ def sweep_recording(
     out: str | Path = "sweep.h5",
     mass: float | None = None,
     on_run: Any = None,
-) -> tuple[str, Path]:
+) -> tuple[str, Path, bool]:
     """``fricjax sweep``: every method x schedule x alpha x restart into one results file.
 
     All runs share the problem and hence the compiled cost; the file is rewritten after
-    each run, so an interrupted sweep keeps every finished run.
+    each run, so an interrupted sweep keeps every finished run. Returns the ranked table,
+    the file and whether Ctrl-C cut the sweep short (after at least one run).
     """
     from fricjax.identify import IdentifySettings, identify
     from fricjax.io.results import ResultsFile, provenance, write_results
     from fricjax.report.tables import fmt, format_table
 
+    path = Path(out)
+    check_outputs([path], {"recording": recording, "--config": config}, "--out")
+    if not (methods and schedules and alphas) or restarts < 1:
+        raise FricjaxError(
+            f"{where('sweep')}: nothing to run: --methods, --schedules and --alphas each "
+            f"need at least one entry and --restarts at least 1 (got {len(methods)} "
+            f"methods, {len(schedules)} schedules, {len(alphas)} alphas, {restarts} restarts)"
+        )
+    if seed + restarts > 2**64:  # the seeds run are seed … seed + restarts − 1
+        raise FricjaxError(
+            f"{where('sweep', '--seed')}: seeds {seed} … {seed + restarts - 1} pass the "
+            "64-bit key's largest, 2**64 − 1"
+        )
     rec, cfg, problem = load(recording, config, mass=mass)
     attrs = provenance(
         kind="sweep",
@@ -383,7 +402,7 @@ def sweep_recording(
         config_path=cfg.source,
     )
     runs = []
-    path = Path(out)
+    interrupted = False
     try:
         for method in methods:
             for schedule in schedules:
@@ -409,6 +428,7 @@ def sweep_recording(
     except KeyboardInterrupt:
         if not runs:
             raise
+        interrupted = True
     rows = [
         (
             r.label,
@@ -423,7 +443,7 @@ def sweep_recording(
     table = format_table(
         rows, ("run", "cost [N²]", "EMS [N²]", "before refine", "levels", "time [s]")
     )
-    return table, path
+    return table, path, interrupted
 
 
 def diagnose_recording(
@@ -444,9 +464,14 @@ def diagnose_recording(
     :func:`read_recording`, which ignores that group.
     """
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
-    from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
+    from fricjax.diagnose.run import OUTPUT_FILES, DiagnoseSettings, diagnose, write_diagnosis
     from fricjax.identify import CLI_SOURCE, IdentifySettings
 
+    check_outputs(
+        [Path(out) / name for name in OUTPUT_FILES],
+        {"recording": recording, "--config": config, "--validation": validation},
+        "--out",
+    )
     _, cfg, problem = load(recording, config, mass=mass)
     # the base fit runs once per diagnosis: compile for compile speed (see identify_recording)
     ident = dataclasses.replace(
@@ -507,6 +532,19 @@ def simulate_recording(
     from fricjax.simulation import simulate_against, write_simulation
     from fricjax.validate import _config_from_results, parse_controller
 
+    if out is not None:
+        from fricjax.simulation import OUTPUT_FILES
+
+        check_outputs(
+            [Path(out) / name for name in OUTPUT_FILES],
+            {
+                "recording": None if isinstance(recording, Recording) else recording,
+                "--results": results,
+                "--params": None if isinstance(params, dict) else params,
+                "--config": None if isinstance(config, Config) else config,
+            },
+            "--out",
+        )
     if (results is None) == (params is None):
         raise FricjaxError(
             f"{where('simulate', '--results/--params')}: give exactly one of them "

@@ -6,6 +6,7 @@ Every command maps onto one API call; a user mistake (:class:`FricjaxError`) pri
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -13,14 +14,15 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from typer._click.exceptions import NoArgsIsHelpError  # typer vendors click (pinned <0.30)
+from typer.exceptions import Abort, TyperException
 
-from fricjax.errors import FricjaxError
+from fricjax.errors import EXIT, FricjaxError, OutputFault
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    help="Identify friction models from recorded motion (JAX), and find what they leave out.",
 )
 
 RecArg = Annotated[Path, typer.Argument(help="Recording (.h5 layout v1 or .csv)")]
@@ -37,6 +39,9 @@ DefaultConfigOpt = Annotated[
 MassOpt = Annotated[
     float | None, typer.Option("--mass", help="Moving mass [kg] (for CSV or to override)")
 ]
+#: The PRNG key holds 64 bits (:func:`fricjax.identify.prng_key`): a larger or negative
+#: seed would silently alias another one.
+SEED_RANGE = {"min": 0, "max": 2**64 - 1}
 
 
 def _echo_table(rows: list[tuple[str, ...]], header: tuple[str, ...] | None = None) -> None:
@@ -53,7 +58,7 @@ def twin(
     duration: Annotated[float, typer.Option(help="Record length [s]")] = 0.272,
     rate: Annotated[float, typer.Option(help="Sampling rate [Hz]")] = 1000.0,
     noise_std: Annotated[float | None, typer.Option(help="Noise std on x [m]")] = None,
-    seed: Annotated[int, typer.Option(help="Noise seed")] = 0,
+    seed: Annotated[int, typer.Option(help="Noise seed", **SEED_RANGE)] = 0,
 ) -> None:
     """Write a paper-twin recording (seed eq. 5, CSAA column of Tables 1-3; truth in /truth)."""
     from fricjax.data.twin import DEFAULT_NOISE_STD, write_twin
@@ -92,6 +97,9 @@ def import_mat_cmd(
     """Import a .mat file onto the recording layout (jittered time base resampled)."""
     from fricjax.data.importers import import_mat
     from fricjax.data.recording import write_recording
+    from fricjax.io.atomic import check_outputs
+
+    check_outputs([out], {"MAT": mat}, "OUT")
 
     mapping: dict[str, str] = {}
     for pair in map_.split(","):
@@ -163,12 +171,16 @@ def identify(
     recording: RecArg,
     config: DefaultConfigOpt = None,
     method: MethodOpt = None,
-    chains: Annotated[int | None, typer.Option(help="Parallel chains (restarts)")] = None,
-    seed: Annotated[int | None, typer.Option(help="Seed (same seed = same result)")] = None,
+    chains: Annotated[int | None, typer.Option(help="Parallel chains (restarts)", min=1)] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="Seed (same seed = same result)", **SEED_RANGE)
+    ] = None,
     schedule: Annotated[str | None, typer.Option(help="geometric|boltzmann|cauchy|reheat")] = None,
     alpha: Annotated[float | None, typer.Option(help="Cooling factor (eq. 16)")] = None,
-    steps_per_level: Annotated[int | None, typer.Option(help="Metropolis steps per level")] = None,
-    max_levels: Annotated[int | None, typer.Option(help="Hard limit on levels")] = None,
+    steps_per_level: Annotated[
+        int | None, typer.Option(help="Metropolis steps per level", min=1)
+    ] = None,
+    max_levels: Annotated[int | None, typer.Option(help="Hard limit on levels", min=1)] = None,
     refine: Annotated[bool, typer.Option(help="Polish with Levenberg-Marquardt")] = True,
     separable: Annotated[
         bool | None,
@@ -221,6 +233,14 @@ def identify(
         typer.echo("", err=True)
     typer.echo(run_summary(result, recording=recording))
     typer.echo(f"results: {path}")
+    if result.attrs.get("interrupted"):
+        kept = (
+            "the polished point (uncertainty not computed)"
+            if result.attrs.get("refined")
+            else "the search's best point, not polished"
+        )
+        typer.echo(f"interrupted: {path} holds {kept} (interrupted = True)", err=True)
+        raise typer.Exit(EXIT["partial"])
 
 
 @app.command()
@@ -243,9 +263,9 @@ def sweep(
     methods: Annotated[str, typer.Option(help="Comma-separated methods")] = "csaa,dsaa,rdsa",
     schedules: Annotated[str, typer.Option(help="Comma-separated schedules")] = "geometric",
     alphas: Annotated[str, typer.Option(help="Comma-separated cooling factors")] = "0.95",
-    restarts: Annotated[int, typer.Option(help="Independent seeds per combination")] = 1,
-    chains: Annotated[int | None, typer.Option(help="Chains per run")] = None,
-    seed: Annotated[int, typer.Option(help="First seed")] = 0,
+    restarts: Annotated[int, typer.Option(help="Independent seeds per combination", min=1)] = 1,
+    chains: Annotated[int | None, typer.Option(help="Chains per run", min=1)] = None,
+    seed: Annotated[int, typer.Option(help="First seed", **SEED_RANGE)] = 0,
     refine: Annotated[bool, typer.Option(help="Polish with Levenberg-Marquardt")] = True,
     out: Annotated[Path, typer.Option(help="Sweep results file (.h5)")] = Path("sweep.h5"),
     mass: MassOpt = None,
@@ -261,7 +281,7 @@ def sweep(
         except ValueError:
             raise FricjaxError(f"sweep: cannot parse {text!r}") from None
 
-    table, path = sweep_recording(
+    table, path, interrupted = sweep_recording(
         recording,
         config,
         methods=parse(methods, str),
@@ -277,6 +297,9 @@ def sweep(
     )
     typer.echo(table)
     typer.echo(f"results: {path}")
+    if interrupted:
+        typer.echo(f"interrupted: {path} holds the runs finished so far", err=True)
+        raise typer.Exit(EXIT["partial"])
 
 
 @app.command()
@@ -289,7 +312,7 @@ def validate(
         Path | None, typer.Option("--config", "-c", help="Model config (default: from results)")
     ] = None,
     decimate: Annotated[
-        int, typer.Option(help="IDIM decimation of τ and residual (EMPS recipe: 10)")
+        int, typer.Option(help="IDIM decimation of τ and residual (EMPS recipe: 10)", min=1)
     ] = 1,
     controller: Annotated[
         str | None,
@@ -334,7 +357,7 @@ def simulate(
         str | None,
         typer.Option(help="Closed loop: 'emps' or kp=…,kv=…[,u_max=…] (needs /r)"),
     ] = None,
-    substeps: Annotated[int, typer.Option(help="RK4 sub-steps per sample interval")] = 4,
+    substeps: Annotated[int, typer.Option(help="RK4 sub-steps per sample interval", min=1)] = 4,
     out: Annotated[Path, typer.Option(help="Output folder")] = Path("simulation"),
     mass: MassOpt = None,
 ) -> None:
@@ -344,8 +367,6 @@ def simulate(
     from fricjax.simulation import format_simulation
 
     enable_compilation_cache()
-    if substeps < 1:
-        raise FricjaxError(f"--substeps: must be an integer >= 1, got {substeps}")
     report = simulate_recording(
         recording,
         results=results,
@@ -615,31 +636,85 @@ def bench_throughput(
     typer.echo(f"report: {path}")
 
 
-def main() -> None:
-    """Entry point: run the app, turning user mistakes into one line and exit status 2."""
+def _version(value: bool) -> None:
+    if value:
+        from importlib import metadata
+
+        typer.echo(f"fricjax {metadata.version('fricjax')}")
+        raise typer.Exit(0)
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version, is_eager=True, help="Print the version and exit"
+        ),
+    ] = False,
+) -> None:
+    """Identify friction models from recorded motion (JAX), and find what they leave out.
+
+    Exit status:
+    0 done;
+    1 the machine refused an output (disk full, folder not writable);
+    2 a mistake in the command line or an input (one line names it);
+    3 interrupted (Ctrl-C) after writing partial results (marked interrupted);
+    130 interrupted before anything was written.
+    """
+
+
+def _usage_line(err: TyperException) -> str:
+    """One line for a command-line mistake: ``command line: fricjax CMD: what is wrong``."""
+    ctx = getattr(err, "ctx", None)
+    command = f"{ctx.command_path}: " if ctx is not None else ""
+    return " ".join(f"command line: {command}{err.format_message()}".split())
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: one line on stderr for every refusal, and a distinct exit status.
+
+    Exit statuses (one place: :data:`EXIT`): 0 done; 1 the machine refused an output
+    (:class:`OutputFault`: disk full, read-only folder); 2 a user mistake (command line,
+    input file, config); 3 interrupted by Ctrl-C after partial results were written (the
+    file says ``interrupted``); 130 (128 + SIGINT, the shell's convention) interrupted
+    before anything was written. ``fricjax`` alone (or ``fricjax bench``) prints the
+    help and exits 0: asking what the tool does is not a mistake.
+    """
     try:
-        # Outside standalone mode, typer turns Ctrl-C (and any ctx.exit(n)) into a returned
-        # exit code instead of raising: dropped, an interrupted run would exit 0.
-        code = app(standalone_mode=False)
+        # Outside standalone mode typer returns the code of a typer.Exit (and turns
+        # Ctrl-C into 130) instead of calling sys.exit, and raises usage errors to here.
+        code = app(args=argv, prog_name="fricjax", standalone_mode=False)
+    except NoArgsIsHelpError as err:
+        typer.echo(err.format_message())
+        sys.exit(EXIT["ok"])
+    except TyperException as err:  # usage mistakes: unknown option, bad value, ...
+        typer.echo(f"error: {_usage_line(err)}", err=True)
+        sys.exit(EXIT["mistake"])
     except FricjaxError as err:
         typer.echo(f"error: {err}", err=True)
-        sys.exit(2)
-    except KeyboardInterrupt:
+        sys.exit(EXIT["mistake"])
+    except OutputFault as err:
+        typer.echo(f"error: {err}", err=True)
+        sys.exit(EXIT["machine"])
+    except (KeyboardInterrupt, Abort):
         typer.echo("interrupted", err=True)
-        sys.exit(130)
-    except Exception as err:  # click usage errors arrive here in non-standalone mode
-        import click
-
-        if isinstance(err, click.exceptions.ClickException):
-            err.show()
-            sys.exit(err.exit_code)
-        if isinstance(err, click.exceptions.Abort):
-            sys.exit(130)
-        raise
+        _exit_now(EXIT["interrupted"])
+    if code == EXIT["interrupted"]:
+        typer.echo("interrupted", err=True)
+    if code in (EXIT["interrupted"], EXIT["partial"]):
+        _exit_now(code)
     if isinstance(code, int) and code != 0:
-        if code == 130:
-            typer.echo("interrupted", err=True)
         sys.exit(code)
+
+
+def _exit_now(code: int) -> None:
+    """End an interrupted run at once: the interpreter's teardown would wait for (or,
+    with XLA still compiling or running in a worker thread, crash under) work the user
+    asked to stop. Every output is already complete on disk (written atomically)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

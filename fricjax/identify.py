@@ -24,6 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FuturesTimeout
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -34,10 +35,12 @@ from jaxtyping import Array
 
 from fricjax.errors import FricjaxError, where
 from fricjax.io.results import RunResult
+from fricjax.limits import check_chains
 from fricjax.output_error import OutputErrorSettings, fit_output_error
 from fricjax.problem import Problem
 from fricjax.refine import (
     RefineSettings,
+    Uncertainty,
     cluster_minima,
     compile_refine,
     refine,
@@ -240,6 +243,7 @@ def identify(
     """Search, refine and qualify the parameters of ``problem`` (see module docstring)."""
     settings = settings or IdentifySettings()
     spec = problem.spec
+    check_chains(settings.chains, problem.n, spec.n_free, settings.anneal.max_levels, "identify")
     lower, upper = spec.lower, spec.upper
     start = time.perf_counter()
     sep = separate(problem) if settings.separable else None
@@ -258,7 +262,11 @@ def identify(
             source=spec.source,
         )
     else:
-        search = _separable_search(sep, settings, on_level)
+        # one compiled program: Ctrl-C reaches Python only through _interruptible, and
+        # with nothing found yet it ends the run (nothing to keep)
+        search = _interruptible(
+            lambda: _separable_search(sep, settings, on_level), "fricjax-search"
+        )
     best_x, cost_search = np.asarray(search.best_x), float(search.best_cost)
     best_cost = cost_search
     interrupted, refined = bool(search.interrupted), False
@@ -266,7 +274,9 @@ def identify(
         # Ctrl-C while the refiner runs keeps the search's best, unrefined, as Ctrl-C
         # during the search does: the user asked to stop, not to lose the annealing.
         try:
-            best_x, best_cost = _polish(problem, search, settings, polish)
+            best_x, best_cost = _interruptible(
+                lambda: _polish(problem, search, settings, polish), "fricjax-polish"
+            )
             refined = True
         except KeyboardInterrupt:
             interrupted = True
@@ -275,8 +285,17 @@ def identify(
     wall = time.perf_counter() - start
     # r and J in one compiled program (uncertainty() would compile the residual twice and
     # build jacfwd's basis op by op)
-    r, jac = value_and_jacobian(residual, np.asarray(best_x), fast_compile=settings.fast_compile)
-    unc = uncertainty_at(r, jac, best_x, lower, upper, names=list(spec.free_names))
+    try:
+        r, jac = _interruptible(
+            lambda: value_and_jacobian(
+                residual, np.asarray(best_x), fast_compile=settings.fast_compile
+            ),
+            "fricjax-uncertainty",
+        )
+        unc = uncertainty_at(r, jac, best_x, lower, upper, names=list(spec.free_names))
+    except KeyboardInterrupt:  # keep the point found; its uncertainty stays unknown (NaN)
+        interrupted = True
+        unc = _no_uncertainty(list(spec.free_names))
     minima = cluster_minima(search.chain_x, search.chain_cost, lower, upper)
     d = spec.n_free
     run = RunResult(
@@ -400,6 +419,43 @@ def _separable_search(
     chain_x = np.asarray(chain_x)
     i = int(np.argmin(found.chain_cost))
     return found._replace(best_x=chain_x[i].copy(), chain_x=chain_x)
+
+
+def _no_uncertainty(names: list[str]) -> Uncertainty:
+    """NaN uncertainty of ``names``, flagged: Ctrl-C stopped its computation."""
+    d = len(names)
+    nan = np.full(d, np.nan)
+    return Uncertainty(
+        std=nan,
+        rel_std=nan.copy(),
+        corr=np.full((d, d), np.nan),
+        sigma2=float("nan"),
+        on_bound=np.zeros(d, dtype=bool),
+        flags=[["uncertainty not computed (interrupted)"] for _ in range(d)],
+        cond=float("nan"),
+        names=names,
+    )
+
+
+def _interruptible(work: Callable[[], Any], name: str) -> Any:
+    """``work()`` in a worker thread, this thread waiting so that Ctrl-C reaches it now.
+
+    A compiled XLA program (or its compilation) returns to Python only when done, so a
+    Ctrl-C during the polish would otherwise wait for the whole polish (~20 s cold on the
+    paper twin). On Ctrl-C the worker is abandoned, not stopped: the CLI then ends the
+    process at once (:func:`fricjax.cli.main`); in a notebook it finishes unseen. The
+    work and its result are those of a direct call.
+    """
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+    future = pool.submit(work)
+    pool.shutdown(wait=False)
+    while True:
+        try:
+            # a bounded wait: the main thread returns to the interpreter, which raises
+            # KeyboardInterrupt here between waits
+            return future.result(timeout=0.1)
+        except FuturesTimeout:
+            continue
 
 
 def _compile_polish_ahead(

@@ -35,7 +35,7 @@ from fricjax.config import parse_config
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording, require_mass
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import atomic_path
+from fricjax.io.atomic import write_text_atomic
 from fricjax.units import AxisUnits, axis_unit, axis_units
 
 DRIVES = ("measured", "harmonic")
@@ -161,9 +161,7 @@ def write_scaffold(out: str | Path, text: str, *, force: bool = False) -> Path:
     out = Path(out)
     if out.exists() and not force:
         raise FricjaxError(f"{where(out)}: exists; choose another --out or pass --force")
-    with atomic_path(out) as tmp:
-        Path(tmp).write_text(text, encoding="utf-8")
-    return out
+    return write_text_atomic(out, text)
 
 
 def _g(value: float) -> str:

@@ -41,7 +41,8 @@ import numpy as np
 from fricjax.config import Config
 from fricjax.data.recording import Recording
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import atomic_path, write_text_atomic
+from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
+from fricjax.limits import check_substeps
 from fricjax.model.closed_loop import CascadePD
 from fricjax.params import check_known
 from fricjax.units import LINEAR
@@ -145,6 +146,7 @@ def simulate_against(
     """
     if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
         raise FricjaxError(f"{where('simulate', 'substeps')}: must be an integer >= 1")
+    check_substeps(substeps, rec.n, "simulate")
     src = rec.path or rec.name
     if controller is not None and rec.r is None:
         raise FricjaxError(
@@ -194,6 +196,10 @@ def simulate_against(
     )
 
 
+#: What :func:`write_simulation` writes into its folder.
+OUTPUT_FILES = ("simulation.json", "simulation.h5", "simulation.png")
+
+
 def write_simulation(report: SimulationReport, out: str | Path) -> SimulationReport:
     """Write ``out/simulation.json`` (metrics), ``out/simulation.h5`` (series) and
     ``out/simulation.png`` (figure), each atomically; returns the report with ``files``.
@@ -205,14 +211,12 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
     """
     from fricjax.report.simulation_plots import plot_simulation
 
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise FricjaxError(f"{where(out)}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out)
     meta = report.as_dict()
-    json_path = write_text_atomic(out / "simulation.json", json.dumps(meta, indent=2) + "\n")
-    h5_path = out / "simulation.h5"
-    with atomic_path(h5_path) as tmp, h5py.File(tmp, "w") as f:
+    json_name, h5_name, png_name = OUTPUT_FILES
+    json_path = write_text_atomic(out / json_name, json.dumps(meta, indent=2) + "\n")
+
+    def fill(f: h5py.File) -> None:
         f.attrs["format"] = FORMAT
         f.attrs["recording"] = report.recording
         f.attrs["mode"] = report.mode
@@ -231,7 +235,9 @@ def write_simulation(report: SimulationReport, out: str | Path) -> SimulationRep
             for name, y in series.items():
                 ds = g.create_dataset(name, data=np.asarray(y, dtype=np.float64))
                 ds.attrs["unit"] = report.metrics[name].unit
-    png_path = plot_simulation(report, out / "simulation.png")
+
+    h5_path = write_hdf5_atomic(out / h5_name, fill)
+    png_path = plot_simulation(report, out / png_name)
     return report._replace(files={"json": json_path, "h5": h5_path, "png": png_path})
 
 

@@ -49,7 +49,8 @@ from fricjax.config import Config, load_config, parse_config
 from fricjax.data.decimate import antialias_kernel, check_factor, decimate
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import write_text_atomic
+from fricjax.io.atomic import check_outputs, write_text_atomic
+from fricjax.limits import check_decimation
 from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
 from fricjax.model.simulate import simulate
 from fricjax.problem import Problem, bind_input, build_problem, needs_input
@@ -159,6 +160,7 @@ def equation_error(
     """IDIM equation-error metrics of ``params`` on ``rec`` (module docstring)."""
     q = check_factor(decimate_by, "validate")
     problem = _problem(rec, cfg, params)
+    check_decimation(q, problem.n, "validate")
     p = _named(problem, params, source)
     sig = problem.signals
     a = jnp.asarray(problem.a)
@@ -344,6 +346,9 @@ def validate_recording(
     file; optional JSON report ``out`` (written atomically)."""
     from fricjax.api import read_params
 
+    if out is not None:
+        inputs = {"recording": recording, "--results": results, "--config": config}
+        check_outputs([Path(out)], inputs, "--out")
     results = Path(results)
     params = read_params(results)
     if config is not None:

@@ -126,12 +126,17 @@ def test_a_misspelt_parameter_is_refused_not_dropped(tmp_path: Path) -> None:
 def test_ctrl_c_exits_130_not_0(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     # A script that runs diagnoses in a loop must see an interrupted one as failed.
     import fricjax.api
+    import fricjax.cli
     from fricjax.cli import main
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
+    def exit_now(code: int) -> None:  # os._exit would end pytest itself
+        raise SystemExit(code)
+
     monkeypatch.setattr(fricjax.api, "diagnose_recording", interrupted)
+    monkeypatch.setattr(fricjax.cli, "_exit_now", exit_now)
     monkeypatch.setattr(sys, "argv", ["fricjax", "diagnose", "data/paper_twin.h5"])
     with pytest.raises(SystemExit) as exc:
         main()

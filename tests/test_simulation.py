@@ -168,7 +168,7 @@ def test_bad_input_exits_2_with_one_line(monkeypatch, capsys, tmp_path, truth_fi
         ),
         (
             (rec, "--params", str(truth_file), "-c", str(PAPER), "--substeps", "0"),
-            "error: --substeps: must be an integer >= 1",
+            "error: command line: fricjax simulate: Invalid value for '--substeps'",
         ),
     ]
     for args, message in cases:

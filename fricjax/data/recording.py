@@ -39,6 +39,7 @@ and diagnosis must not see the answer, so only benchmark code opens that group.
 from __future__ import annotations
 
 import hashlib
+import io
 import math
 import os
 from collections.abc import Mapping
@@ -51,7 +52,7 @@ import numpy as np
 from jaxtyping import Float
 
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import atomic_path
+from fricjax.io.atomic import write_hdf5_atomic, write_text_atomic
 
 __all__ = [
     "MAX_STEP_JITTER",
@@ -533,22 +534,11 @@ def write_recording(
         if suffix == _CSV_SUFFIX:
             raise FricjaxError(f"{where(path, '/truth')}: CSV cannot store truth; use .h5")
         _check_truth(path, truth, "/truth")
-    with atomic_path(path) as tmp:
-        if suffix == _CSV_SUFFIX:
-            with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
-                _write_csv_body(fh, rec)
-                fh.flush()
-                os.fsync(fh.fileno())
-        else:
-            with h5py.File(tmp, "w") as f:
-                _write_hdf5_body(f, rec, truth)
-            _fsync(tmp)
-    return path
-
-
-def _fsync(path: Path) -> None:
-    with open(path, "rb") as fh:
-        os.fsync(fh.fileno())
+    if suffix == _CSV_SUFFIX:
+        text = io.StringIO(newline="\n")
+        _write_csv_body(text, rec)
+        return write_text_atomic(path, text.getvalue())
+    return write_hdf5_atomic(path, lambda f: _write_hdf5_body(f, rec, truth))
 
 
 def _write_csv_body(fh: TextIO, rec: Recording) -> None:

@@ -57,7 +57,7 @@ from fricjax.diagnose.simulation_test import (
 )
 from fricjax.diagnose.stages import LIMITED, Clock, OnStage
 from fricjax.identify import IdentifySettings, identify
-from fricjax.io.atomic import atomic_path, write_text_atomic
+from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
 from fricjax.params import ParamSpec
@@ -1360,25 +1360,30 @@ def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
 # -- output --------------------------------------------------------------------------------
 
 
+#: The files :func:`write_diagnosis` writes under fixed names (plus ``residual_*.png``).
+OUTPUT_FILES = ("diagnosis.json", "models.h5", "report.md")
+
+
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
     """Write diagnosis.json, report.md, residual plots and models.h5 into ``out_dir``."""
     from fricjax.diagnose.report import markdown_report, residual_plots
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out_dir)
+    json_name, models_name, report_name = OUTPUT_FILES
     # diagnosis.json last, so its timing holds the report stage too
-    paths = {"json": out / "diagnosis.json"}
+    paths = {"json": out / json_name}
     with diag.clock.stage("report", "plots, models file and report"):
         paths.update(residual_plots(diag, out))
-        paths["models"] = _write_models(diag, out / "models.h5")
-        paths["report"] = write_text_atomic(out / "report.md", markdown_report(diag, paths))
+        paths["models"] = _write_models(diag, out / models_name)
+        paths["report"] = write_text_atomic(out / report_name, markdown_report(diag, paths))
     write_text_atomic(paths["json"], json.dumps(diag.as_json(), indent=2) + "\n")
     return paths
 
 
 def _write_models(diag: Diagnosis, path: Path) -> Path:
     sel = diag.selection
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+
+    def fill(f: h5py.File) -> None:
         f.attrs["format"] = "fricjax-diagnosis-models-v1"
         f.attrs["recording"] = diag.recording
         for label, (model, spec, theta) in (
@@ -1393,4 +1398,5 @@ def _write_models(diag: Diagnosis, path: Path) -> Path:
             g["values"] = np.array(list(named.values()), dtype=np.float64)
             g["free"] = np.array([spec[n].free for n in named], dtype=bool)
             g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
-    return path
+
+    return write_hdf5_atomic(path, fill)

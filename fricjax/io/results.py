@@ -42,7 +42,7 @@ import h5py
 import numpy as np
 
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import atomic_path
+from fricjax.io.atomic import write_hdf5_atomic
 
 FORMAT = "fricjax-results-v1"
 TRACE_KEYS = ("best_cost", "current_cost", "acceptance", "temperature", "n_evals", "wall_time")
@@ -129,9 +129,9 @@ def _str_array(items: list[str]) -> np.ndarray:
 
 
 def write_results(results: ResultsFile, path: str | Path) -> Path:
-    """Write atomically (temp file + rename)."""
-    path = Path(path)
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    """Write atomically (:mod:`fricjax.io.atomic`: built in memory, then renamed)."""
+
+    def fill(f: h5py.File) -> None:
         for key, value in results.attrs.items():
             f.attrs[key] = value
         runs = f.create_group("runs")
@@ -161,7 +161,8 @@ def write_results(results: ResultsFile, path: str | Path) -> Path:
             m["x"] = np.asarray(run.minima_x, dtype=np.float64)
             m["cost"] = np.asarray(run.minima_cost, dtype=np.float64)
             m["count"] = np.asarray(run.minima_count, dtype=np.int64)
-    return path
+
+    return write_hdf5_atomic(path, fill)
 
 
 def _attr(value: Any) -> Any:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import matplotlib
@@ -10,17 +11,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from fricjax.io.atomic import atomic_path
+from fricjax.io.atomic import write_bytes_atomic
 from fricjax.units import LINEAR, AxisUnits
 
 
 def save(fig: plt.Figure, path: str | Path) -> Path:
     """Save atomically and close the figure."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", dpi=110)
-    plt.close(fig)
-    return path
+    buffer = io.BytesIO()
+    try:
+        fig.savefig(buffer, format=path.suffix.lstrip(".") or "png", dpi=110)
+    finally:
+        plt.close(fig)
+    return write_bytes_atomic(path, buffer.getvalue())
 
 
 def plot_signals(
