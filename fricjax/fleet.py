@@ -486,7 +486,7 @@ def run_fleet(
 
         futures = {
             client.submit(
-                fit_shard,
+                _fit_shard_on_worker,
                 shard_members(shard),
                 shard.width,
                 settings,
@@ -507,6 +507,18 @@ def run_fleet(
                 ]
             place(shard, result, done)
     return [f for f in fits if f is not None]
+
+
+def _fit_shard_on_worker(
+    members: Sequence[Member], width: int, settings: IdentifySettings, number: int
+) -> list[FleetFit]:
+    """:func:`fit_shard` in a Dask worker, with jax's persistent compilation cache on
+    (:func:`fricjax.api.enable_compilation_cache`): every worker, and a worker restarted
+    after a crash, loads the shard's programs instead of compiling them again."""
+    from fricjax.api import enable_compilation_cache
+
+    enable_compilation_cache()
+    return fit_shard(members, width, settings, number)
 
 
 def _fresh(member: Member) -> Member:

@@ -17,7 +17,13 @@ at family-wise level α over all m tests (m = number of z-scores computed):
     z* = Φ⁻¹(1 − α / (2m))      (α = 0.05: z* = 3.29 for m = 20, 4.56 for m = 26 000)
 
 so on a fleet of one unchanged plant the chance of any flag is at most α. Leaving the
-recording out keeps a large drift from pulling the pooled value towards itself. The σ are
+recording out keeps a large drift from pulling the pooled value towards itself; and since a
+drifted recording would still pull the *other* recordings' references (with few
+recordings, enough to flag them too), the test is sequential: the recording with the
+largest |z| above z* is flagged and leaves the pool, the z-scores are recomputed against
+the remaining pool, until none exceeds z* (or two recordings are left: with two, a
+difference cannot be attributed to either). Flagged recordings report their z against the
+final pool; the pooled value is the final pool's. The σ are
 those of the model's own residual: a model that misses physics has σ too small and flags
 recordings that differ only in what it misses.
 """
@@ -62,25 +68,43 @@ class Drift:
 
 def drift(values: np.ndarray, stds: np.ndarray, *, alpha: float = ALPHA) -> Drift:
     """z-scores of ``values [N, d]`` with σ ``stds [N, d]`` against the leave-one-out pooled
-    estimate, and the Bonferroni flag (module docstring). NaN rows are left out."""
+    estimate, and the Bonferroni flag with sequential removal (module docstring). NaN rows
+    are left out."""
     x = np.asarray(values, np.float64)
     s = np.asarray(stds, np.float64)
     usable = np.isfinite(x) & np.isfinite(s) & (s > 0)
-    w = np.where(usable, 1.0 / np.where(usable, s, 1.0) ** 2, 0.0)
+    w_all = np.where(usable, 1.0 / np.where(usable, s, 1.0) ** 2, 0.0)
     xs = np.where(usable, x, 0.0)
-    total_w = w.sum(axis=0)
-    total = (w * xs).sum(axis=0)
-    rest_w = total_w - w
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean_rest = (total - w * xs) / rest_w
-        z = (xs - mean_rest) / np.sqrt(s**2 + 1.0 / rest_w)
-        pooled = total / total_w
-        pooled_std = 1.0 / np.sqrt(total_w)
-    z = np.where(usable & (rest_w > 0), z, np.nan)
+    pool = np.ones(x.shape[0], dtype=bool)
+    moved = np.zeros(x.shape[0], dtype=bool)
+    z = _scores(xs, s, w_all, usable, pool)
     m = int(np.isfinite(z).sum())
     threshold = float(norm.isf(alpha / (2 * m))) if m else math.inf
-    moved = np.any(np.abs(np.nan_to_num(z)) > threshold, axis=1)
+    while pool.sum() > 2:
+        worst = np.max(np.abs(np.nan_to_num(z)), axis=1)
+        worst[~pool] = -np.inf
+        i = int(np.argmax(worst))
+        if not worst[i] > threshold:
+            break
+        moved[i], pool[i] = True, False
+        z = _scores(xs, s, w_all, usable, pool)
+    w = w_all * pool[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pooled = (w * xs).sum(axis=0) / w.sum(axis=0)
+        pooled_std = 1.0 / np.sqrt(w.sum(axis=0))
     return Drift(z, pooled, pooled_std, threshold, m, alpha, moved)
+
+
+def _scores(
+    xs: np.ndarray, s: np.ndarray, w_all: np.ndarray, usable: np.ndarray, pool: np.ndarray
+) -> np.ndarray:
+    """z [N, d] of every recording against the pooled recordings other than itself."""
+    w = w_all * pool[:, None]
+    rest_w = w.sum(axis=0) - w
+    rest = (w * xs).sum(axis=0) - w * xs
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (xs - rest / rest_w) / np.sqrt(s**2 + 1.0 / rest_w)
+    return np.where(usable & (rest_w > 0), z, np.nan)
 
 
 def ordering(orders: list[str]) -> np.ndarray:
