@@ -119,6 +119,7 @@ def test_drift_z_is_the_leave_one_out_score() -> None:
     assert z[2, 0] == pytest.approx(2.5 / np.sqrt(4.5))
 
 
+@pytest.mark.slow  # compiles a second program (width 1)
 def test_shard_size_does_not_change_the_answers(fleet_run) -> None:
     from fricjax.api import load
     from fricjax.fleet import Member
