@@ -476,7 +476,9 @@ def run_fleet(
             on_shard(done, len(shards), [f for f in fits if f is not None])
 
     def shard_members(shard: Shard) -> list[Member]:
-        return [_fresh(members[i]) for i in shard.index]
+        # to a worker only arrays and structure travel; in process the cached cost
+        # functions of the problems are reused
+        return [_fresh(members[i]) if client is not None else members[i] for i in shard.index]
 
     if client is None:
         for done, shard in enumerate(shards, start=1):
