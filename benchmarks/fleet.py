@@ -30,6 +30,7 @@ prints the report's path.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import sys
 import time
@@ -42,7 +43,7 @@ import scipy.optimize
 import fricjax  # noqa: F401  (float64)
 from fricjax.bench.machine import describe
 from fricjax.config import load_config
-from fricjax.data.twin import axis_twin, paper_twin
+from fricjax.data.twin import DEFAULT_NOISE_STD, axis_twin, paper_twin
 from fricjax.fleet import SHARD_SIZE, Member, run_fleet
 from fricjax.identify import IdentifySettings, identify
 from fricjax.problem import build_problem
@@ -54,13 +55,21 @@ MODELS = {
 }
 
 
+#: The twins' default noise on x [m].
+NOISE = {"axis": 1e-6, "paper": DEFAULT_NOISE_STD}
+
+
 def members_of(model: str, n: int) -> tuple[list[Member], IdentifySettings]:
     path, twin = MODELS[model]
     cfg = load_config(path)
     settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
+    # The twins differ only in their noise: simulate once, then add noise seed i exactly as
+    # twin(seed=i) does (numpy PCG64, normal(0, noise_std, n) on x).
+    clean, _ = twin(duration=1.0, noise_std=0.0)
     out = []
     for i in range(n):
-        rec, _ = twin(duration=1.0, seed=i, name=f"{model}{i}")
+        noise = np.random.default_rng(i).normal(0.0, NOISE[model], clean.n)
+        rec = dataclasses.replace(clean, x=clean.x + noise, name=f"{model}{i}")
         out.append(Member(rec.name, "", f"{i:06d}", build_problem(rec, cfg)))
     return out, settings
 
@@ -160,12 +169,11 @@ def bench_model(model: str, sizes: list[int], loop_max: int, shard_size: int, lo
     return {"rows": rows, "memory": memory, "n_samples": members[0].problem.n}
 
 
-def report(results: dict, sizes: list[int], loop_max: int, machine_md: str, elapsed: float) -> str:
+def report(results: dict, command: str, loop_max: int, machine_md: str, elapsed: float) -> str:
     lines = [
         "# Fleet throughput (benchmarks/fleet.py)",
         "",
-        f"Command: `PYTHONPATH=. python benchmarks/fleet.py --sizes {','.join(map(str, sizes))}"
-        f" --loop-max {loop_max}`; {elapsed:.0f} s in all. Device: {jax.devices()[0]}.",
+        f"Command: `{command}`; {elapsed:.0f} s in all. Device: {jax.devices()[0]}.",
         "",
         "Recordings per second, warm (compile time reported apart). The loops are measured on "
         f"at most {loop_max} recordings; where N is larger their rate is that measured one "
@@ -197,7 +205,7 @@ def report(results: dict, sizes: list[int], loop_max: int, machine_md: str, elap
             dev = f", device peak {mem['device']:.0f} MiB" if mem.get("device") else ""
             lines += [
                 "",
-                f"Memory at N = {max(sizes)}: process peak RSS {mem['rss_peak']:.0f} MiB "
+                f"Memory at N = {res['rows'][-1]['n']}: process peak RSS {mem['rss_peak']:.0f} MiB "
                 f"(peak before the run {mem['rss_before']:.0f} MiB){dev}.",
             ]
         lines.append("")
@@ -209,6 +217,9 @@ def main(argv: list[str] | None = None) -> Path:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="1,10,100,1000", help="fleet sizes N, comma-separated")
     ap.add_argument("--models", default="axis,paper", help="axis, paper (comma-separated)")
+    ap.add_argument(
+        "--paper-sizes", default=None, help="sizes for the paper model (default: --sizes)"
+    )
     ap.add_argument("--loop-max", type=int, default=100, help="most recordings per loop")
     ap.add_argument("--shard-size", type=int, default=SHARD_SIZE, help="fleet shard size")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "fleet.md")
@@ -220,12 +231,15 @@ def main(argv: list[str] | None = None) -> Path:
         print(f"[{time.perf_counter() - start:7.1f}s] {msg}", file=sys.stderr, flush=True)
 
     machine_before = describe()
+    per_model = {m: sizes for m in args.models.split(",")}
+    if args.paper_sizes and "paper" in per_model:
+        per_model["paper"] = sorted({int(s) for s in args.paper_sizes.split(",")})
     results = {
-        m: bench_model(m, sizes, args.loop_max, args.shard_size, log)
-        for m in args.models.split(",")
+        m: bench_model(m, n, args.loop_max, args.shard_size, log) for m, n in per_model.items()
     }
     machine_md = machine_before.markdown() + "\n\nLoad after the run: " + str(describe().load)
-    text = report(results, sizes, args.loop_max, machine_md, time.perf_counter() - start)
+    command = "PYTHONPATH=. python benchmarks/fleet.py " + " ".join(argv or sys.argv[1:])
+    text = report(results, command, args.loop_max, machine_md, time.perf_counter() - start)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(args.out)
