@@ -44,7 +44,7 @@ import fricjax  # noqa: F401  (float64)
 from fricjax.bench.machine import describe
 from fricjax.config import load_config
 from fricjax.data.twin import DEFAULT_NOISE_STD, axis_twin, paper_twin
-from fricjax.fleet import SHARD_SIZE, Member, run_fleet
+from fricjax.fleet import Member, default_shard_size, run_fleet
 from fricjax.identify import IdentifySettings, identify
 from fricjax.problem import build_problem
 
@@ -221,7 +221,9 @@ def main(argv: list[str] | None = None) -> Path:
         "--paper-sizes", default=None, help="sizes for the paper model (default: --sizes)"
     )
     ap.add_argument("--loop-max", type=int, default=100, help="most recordings per loop")
-    ap.add_argument("--shard-size", type=int, default=SHARD_SIZE, help="fleet shard size")
+    ap.add_argument(
+        "--shard-size", type=int, default=None, help="fleet shard size (default: the fleet's)"
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "fleet.md")
     args = ap.parse_args(argv)
     sizes = sorted({int(s) for s in args.sizes.split(",")})
@@ -231,12 +233,11 @@ def main(argv: list[str] | None = None) -> Path:
         print(f"[{time.perf_counter() - start:7.1f}s] {msg}", file=sys.stderr, flush=True)
 
     machine_before = describe()
+    shard_size = args.shard_size or default_shard_size()
     per_model = {m: sizes for m in args.models.split(",")}
     if args.paper_sizes and "paper" in per_model:
         per_model["paper"] = sorted({int(s) for s in args.paper_sizes.split(",")})
-    results = {
-        m: bench_model(m, n, args.loop_max, args.shard_size, log) for m, n in per_model.items()
-    }
+    results = {m: bench_model(m, n, args.loop_max, shard_size, log) for m, n in per_model.items()}
     machine_md = machine_before.markdown() + "\n\nLoad after the run: " + str(describe().load)
     command = "PYTHONPATH=. python benchmarks/fleet.py " + " ".join(argv or sys.argv[1:])
     text = report(results, command, args.loop_max, machine_md, time.perf_counter() - start)

@@ -442,7 +442,7 @@ def fleet_recordings(
     ``scheduler``: on a running Dask cluster (``tcp://host:8786``); neither: in process.
     Returns ``(fleet file contents, drift test, report path, figure path)``.
     """
-    from fricjax.fleet import SHARD_SIZE, load_members, run_fleet
+    from fricjax.fleet import default_shard_size, load_members, run_fleet
     from fricjax.identify import IdentifySettings
     from fricjax.io.fleet import FleetFile, fleet_attrs, write_fleet
     from fricjax.report.fleet import write_fleet_report
@@ -454,7 +454,7 @@ def fleet_recordings(
     cfg = load_config(config)
     settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source, overrides=overrides)
     members = load_members(recordings, cfg, order_by=order_by, mass=mass)
-    size = SHARD_SIZE if shard_size is None else shard_size
+    size = default_shard_size() if shard_size is None else shard_size
     with _dask_client(workers, scheduler) as client:
         fits = run_fleet(members, settings, shard_size=size, client=client, on_shard=on_shard)
     spec = next((m.problem.spec for m in members if m.problem is not None), cfg.spec)
