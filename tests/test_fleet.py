@@ -150,3 +150,23 @@ def test_cli_fleet_refuses_a_missing_path_in_one_line(tmp_path: Path) -> None:
     assert out.returncode == 2
     assert out.stderr.strip().count("\n") == 0
     assert "no such recording or directory" in out.stderr
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"workers": 2, "scheduler": "tcp://127.0.0.1:1"}, "not both"),
+        ({"workers": 0}, "--workers: must be >= 1"),
+        ({"shard_size": 0}, "--shard-size: must be >= 1"),
+    ],
+)
+def test_fleet_usage_mistakes_are_one_line_errors(
+    tmp_path: Path, kwargs: dict, message: str
+) -> None:
+    from fricjax.errors import FricjaxError
+
+    rec, _ = axis_twin(seed=0, duration=0.2)
+    path = write_recording(rec, tmp_path / "r.h5")
+    with pytest.raises(FricjaxError, match=message):
+        fleet_recordings([path], AXIS, tmp_path / "f.h5", **kwargs)
+    assert not (tmp_path / "f.h5").exists()
