@@ -46,6 +46,7 @@ from fricjax.config import load_config
 from fricjax.data.twin import DEFAULT_NOISE_STD, axis_twin, paper_twin
 from fricjax.fleet import Member, default_shard_size, run_fleet
 from fricjax.identify import IdentifySettings, identify
+from fricjax.io.atomic import write_text_atomic
 from fricjax.problem import build_problem
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -237,12 +238,15 @@ def main(argv: list[str] | None = None) -> Path:
     per_model = {m: sizes for m in args.models.split(",")}
     if args.paper_sizes and "paper" in per_model:
         per_model["paper"] = sorted({int(s) for s in args.paper_sizes.split(",")})
-    results = {m: bench_model(m, n, args.loop_max, shard_size, log) for m, n in per_model.items()}
-    machine_md = machine_before.markdown() + "\n\nLoad after the run: " + str(describe().load)
     command = "PYTHONPATH=. python benchmarks/fleet.py " + " ".join(argv or sys.argv[1:])
-    text = report(results, command, args.loop_max, machine_md, time.perf_counter() - start)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
+    results: dict = {}
+    for m, n in per_model.items():
+        results[m] = bench_model(m, n, args.loop_max, shard_size, log)
+        # the report is rewritten after every model: a run cut short keeps what it measured
+        load = f"Load after the run: {describe().load}"
+        machine_md = f"{machine_before.markdown()}\n\n{load}"
+        text = report(results, command, args.loop_max, machine_md, time.perf_counter() - start)
+        write_text_atomic(args.out, text)
     print(args.out)
     return args.out
 
