@@ -572,3 +572,101 @@ def simulate_recording(
     if out is not None:
         report = write_simulation(report, out)
     return report
+
+
+def fleet_recordings(
+    recordings: list[str | Path],
+    config: str | Path,
+    out: str | Path,
+    *,
+    overrides: dict[str, Any] | None = None,
+    shard_size: int | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    order_by: str | None = None,
+    mass: float | None = None,
+    on_shard: Any = None,
+) -> tuple[Any, Any, Path, Path]:
+    """``fricjax fleet``: identify every recording independently (:mod:`fricjax.fleet`),
+    write the fleet file (atomic) and its report (``OUT.md`` + ``OUT.png``).
+
+    ``workers``: run the shards on a local Dask cluster of that many worker processes;
+    ``scheduler``: on a running Dask cluster (``tcp://host:8786``); neither: in process.
+    Returns ``(fleet file contents, drift test, report path, figure path)``.
+    """
+    from fricjax.fleet import default_shard_size, load_members, run_fleet
+    from fricjax.identify import IdentifySettings
+    from fricjax.io.fleet import FleetFile, fleet_attrs, write_fleet
+    from fricjax.report.fleet import write_fleet_report
+
+    if workers is not None and scheduler is not None:
+        raise FricjaxError("--workers and --scheduler: give one of them, not both")
+    if workers is not None and workers < 1:
+        raise FricjaxError(f"--workers: must be >= 1, got {workers}")
+    cfg = load_config(config)
+    settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source, overrides=overrides)
+    members = load_members(recordings, cfg, order_by=order_by, mass=mass)
+    size = default_shard_size() if shard_size is None else shard_size
+    with _dask_client(workers, scheduler) as client:
+        fits = run_fleet(members, settings, shard_size=size, client=client, on_shard=on_shard)
+    spec = next((m.problem.spec for m in members if m.problem is not None), cfg.spec)
+    fleet = FleetFile(
+        names=list(spec.free_names),
+        units=[p.unit for p in spec.free],
+        lower=np.asarray(spec.lower, np.float64),
+        upper=np.asarray(spec.upper, np.float64),
+        fits=fits,
+        attrs=fleet_attrs(
+            config_text=cfg.text,
+            config_path=cfg.source,
+            seed=settings.seed,
+            method=settings.method,
+            separable=settings.separable,
+            shard_size=size,
+            order_by=order_by or "",
+        ),
+    )
+    path = write_fleet(fleet, out)
+    report, png = path.with_suffix(".md"), path.with_suffix(".png")
+    result = write_fleet_report(fleet, report, png)
+    return fleet, result, report, png
+
+
+class _dask_client:
+    """``with _dask_client(workers, scheduler) as client``: a ``distributed.Client`` on a
+    new local cluster of ``workers`` processes (one thread each: the fits are vmapped, jax
+    uses the cores), on the running scheduler at ``scheduler``, or None for neither."""
+
+    def __init__(self, workers: int | None, scheduler: str | None) -> None:
+        self.workers, self.scheduler = workers, scheduler
+        self.client: Any = None
+        self.cluster: Any = None
+
+    def __enter__(self) -> Any:
+        if self.workers is None and self.scheduler is None:
+            return None
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise FricjaxError(
+                "--workers/--scheduler: needs dask.distributed (pip install 'fricjax[fleet]')"
+            ) from None
+        if self.scheduler is not None:
+            try:
+                self.client = Client(self.scheduler, timeout="20s")
+            except (OSError, TimeoutError, ValueError) as err:
+                raise FricjaxError(
+                    f"--scheduler {self.scheduler}: cannot connect ({err})"
+                ) from None
+        else:
+            self.cluster = LocalCluster(
+                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None
+            )
+            self.client = Client(self.cluster)
+        return self.client
+
+    def __exit__(self, *exc: object) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()

@@ -244,6 +244,72 @@ def identify(
 
 
 @app.command()
+def fleet(
+    recordings: Annotated[
+        list[Path], typer.Argument(help="Recordings, or directories of .h5/.csv recordings")
+    ],
+    config: ConfigOpt,
+    out: Annotated[Path, typer.Option(help="Fleet file (.h5); report beside it (.md, .png)")],
+    seed: Annotated[int | None, typer.Option(help="Seed of every recording's search")] = None,
+    chains: Annotated[int | None, typer.Option(help="Chains per recording")] = None,
+    shard_size: Annotated[
+        int | None, typer.Option(help="Recordings per vmapped program (one Dask task each)")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Run the shards on a local Dask cluster of N processes")
+    ] = None,
+    scheduler: Annotated[
+        str | None, typer.Option(help="Run the shards on a running Dask cluster (tcp://HOST:8786)")
+    ] = None,
+    order_by: Annotated[
+        str | None, typer.Option(help="Recording attribute to order the report by (default: name)")
+    ] = None,
+    mass: MassOpt = None,
+    quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
+) -> None:
+    """Identify every recording independently (vmapped shards), write one fleet file and a
+    report that flags recordings whose parameters moved beyond their sigma."""
+    from fricjax.api import enable_compilation_cache, fleet_recordings
+
+    enable_compilation_cache()
+
+    def progress(done: int, total: int, fits: list) -> None:
+        n_ok = sum(f.ok for f in fits)
+        typer.echo(
+            f"\rfleet shard {done}/{total}  recordings {len(fits)}  ok {n_ok}  "
+            f"failed {len(fits) - n_ok}",
+            err=True,
+            nl=False,
+        )
+
+    fleet_file, drift, report, png = fleet_recordings(
+        list(recordings),
+        config,
+        out,
+        overrides={"seed": seed, "chains": chains},
+        shard_size=shard_size,
+        workers=workers,
+        scheduler=scheduler,
+        order_by=order_by,
+        mass=mass,
+        on_shard=None if quiet else progress,
+    )
+    if not quiet:
+        typer.echo("", err=True)
+    fits = fleet_file.fits
+    n_ok = sum(f.ok for f in fits)
+    typer.echo(
+        f"{len(fits)} recordings: {n_ok} ok, {len(fits) - n_ok} failed; "
+        f"{int(drift.moved.sum())} moved beyond sigma (|z| > {drift.threshold:.3g})"
+    )
+    for f in fits:
+        if not f.ok:
+            typer.echo(f"failed: {f.name}: {f.reason}")
+    typer.echo(f"fleet: {out}")
+    typer.echo(f"report: {report} ({png.name})")
+
+
+@app.command()
 def show(
     results: Annotated[Path, typer.Argument(help="Results file (.h5) of identify or sweep")],
     recording: Annotated[
