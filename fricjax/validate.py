@@ -67,8 +67,8 @@ __all__ = [
     "open_loop_rmse",
     "parse_controller",
     "simulate_model",
-    "simulation_rmse",
     "simulation_error",
+    "simulation_rmse",
     "validate_model",
     "validate_recording",
 ]
@@ -297,7 +297,7 @@ def initial_state(
     over the window, which at 1 kHz and n_init = 20 spans 19 ms)."""
     k = max(min(int(n_init), len(x)), 3)
     tau = np.asarray(t[:k], dtype=np.float64) - float(t[0])
-    c2, c1, c0 = np.polyfit(tau, np.asarray(x[:k], dtype=np.float64), 2)
+    _, c1, c0 = np.polyfit(tau, np.asarray(x[:k], dtype=np.float64), 2)
     return float(c0), float(c1)
 
 

@@ -254,9 +254,7 @@ def test_the_initial_state_is_the_quadratic_through_the_first_samples_only():
     assert x0 == pytest.approx(0.01, abs=1e-12) and v0 == pytest.approx(0.05, abs=1e-9)
 
 
-def test_open_loop_rmse_is_small_at_the_truth_and_grows_with_a_friction_error(
-    cfg, closed_loop_rec
-):
+def test_open_loop_rmse_is_small_at_the_truth_and_grows_with_a_friction_error(cfg, closed_loop_rec):
     """The recorded controller output drives the plant open loop; the position is set once
     from x[:20] (the body rests there) and never fed back."""
     at_truth = open_loop_rmse(closed_loop_rec, cfg, TRUTH)
