@@ -172,8 +172,8 @@ def where_text(location: Mapping[str, Any]) -> str:
     return "; ".join(parts) or "the whole record"
 
 
-def params_text(diag: Diagnosis, params: Mapping[str, float]) -> tuple[str, list[str]]:
-    """(``name = value unit`` list, the parameters that sit on a bound in words)."""
+def params_text(diag: Diagnosis, params: Mapping[str, float]) -> tuple[str, list[tuple[str, str]]]:
+    """(``name = value unit`` list, (name, why in words) of each parameter on a bound)."""
     shown, bounds = [], []
     for name, value in params.items():
         spec = _spec_of(diag, name)
@@ -185,9 +185,12 @@ def params_text(diag: Diagnosis, params: Mapping[str, float]) -> tuple[str, list
             assert spec is not None
             p = spec[name]
             bounds.append(
-                f"`{name}` = {fmt(float(value), 4)}{unit} sits on the {side} bound of its "
-                f"search range [{fmt(p.lower, 4)}, {fmt(p.upper, 4)}]{unit}: the data push it "
-                "further, so this is a limit of the search, not a measurement"
+                (
+                    name,
+                    f"`{name}` = {fmt(float(value), 4)}{unit} sits on the {side} bound of its "
+                    f"search range [{fmt(p.lower, 4)}, {fmt(p.upper, 4)}]{unit}: the data push it "
+                    "further, so this is a limit of the search, not a measurement",
+                )
             )
     return ", ".join(shown), bounds
 
@@ -470,8 +473,10 @@ def noise_blocks(diag: Diagnosis) -> list[Block]:
             text += (
                 f" With the record's own σ_x ({length(own)}) the band would be "
                 f"|v| < {own_band:.3g} m/s and hold {100 * own_share:.1f} % of the samples: "
-                "most of the marked samples slide slowly rather than rest, because the base "
-                "fit's σ̂_x carries model error."
+                "most of the marked samples slide slowly rather than rest. The band was sized "
+                "by a σ_x inferred from the force residual, where model error (and, with a "
+                "recorded drive or force input, that input's own noise) counts as "
+                "displacement noise."
             )
         blocks.append(Para(text))
     return [Heading("The record and its noise"), *blocks, Table(("quantity", "value"), tuple(rows))]
@@ -722,9 +727,9 @@ def finding_blocks(
     bounded_names: list[str],
 ) -> list[Block]:
     """One finding: what, where, how big (bounds flagged), how sure, its figure."""
-    blocks: list[Block] = [Heading(f"{i}. {f['effect']}", 3), Para(f["explanation"])]
+    blocks: list[Block] = [Heading(f"{i}. {f['effect']}", 3)]
     items = [f"**Where**: {where_text(f.get('location', {}))}"]
-    bounds: list[str] = []
+    bounds: list[tuple[str, str]] = []
     if "rejected_candidate" in f:
         rej = f["rejected_candidate"]
         shown, bounds = params_text(diag, rej["params"])
@@ -740,10 +745,11 @@ def finding_blocks(
     )
     if "heldout_improvement" in f:
         items.append(f"**Held-out gain**: {_heldout_verdict(dict(f))}")
-    blocks.append(Items(tuple(items)))
-    for b in bounds:
-        blocks.append(Para(f"**At a bound**: {b}.", "note"))
-        bounded_names.append(b.split("`")[1])
+    lead = "**Its size sits on a search bound (below): read it as a limit.** " if bounds else ""
+    blocks += [Para(lead + f["explanation"]), Items(tuple(items))]
+    for name, why in bounds:
+        blocks.append(Para(f"**At a bound**: {why}.", "note"))
+        bounded_names.append(name)
     if figure is not None:
         term = "; red dashed: the fitted term" if f.get("effect") != "unexplained" else ""
         blocks.append(
