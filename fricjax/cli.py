@@ -374,6 +374,7 @@ def diagnose(
         f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}"
     )
     typer.echo(f"report: {paths['report']}")
+    typer.echo(f"html: {paths['html']}")
 
 
 bench_app = typer.Typer(

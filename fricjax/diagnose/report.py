@@ -216,8 +216,16 @@ _PREFERENCE = (
 )
 
 
-def located_variable(location: Mapping[str, Any]) -> str:
-    """The key of ``location`` the finding's figure is drawn against."""
+# effects whose signature follows a signal their location does not name
+_SIGNATURE = {"mass_error": "acceleration_mps2"}
+
+
+def located_variable(finding: Mapping[str, Any]) -> str:
+    """The variable a finding's figure is drawn against: the one its signature follows,
+    else the most specific key of its location (time when none)."""
+    if finding.get("effect") in _SIGNATURE:
+        return _SIGNATURE[finding["effect"]]
+    location = finding.get("location", {})
     return next((k for k in _PREFERENCE if k in location), "time_s")
 
 
@@ -319,7 +327,7 @@ def finding_figure(
     the fitted term (:func:`term_force`) overlaid; a spectrum for a frequency finding."""
     pb = diag.problem
     loc = finding.get("location", {})
-    key = located_variable(loc) if finding else "velocity_mps"
+    key = located_variable(finding) if finding else "velocity_mps"
     attr, label, word = _VARIABLES[key]
     term = term_force(diag, finding) if finding else None
     effect = finding.get("effect", "no finding")
