@@ -349,14 +349,15 @@ def finding_figure(
         xs = np.asarray(getattr(pb, attr))
         ax.plot(xs, before, ".", ms=2, color="0.7", alpha=0.6, label="residual before (samples)")
         n_bins = int(np.clip(pb.n // 15, 8, 60))
-        series = [before, after] + ([term] if term is not None else [])
+        series = [before] + ([after] if finding else []) + ([term] if term is not None else [])
         centres, *means = _binned(xs, series, n_bins)
         ax.plot(centres, means[0], color="0.2", lw=1.8, label="before: binned mean")
-        ax.plot(centres, means[1], color="tab:blue", lw=1.8, label="after: binned mean")
+        if finding:
+            ax.plot(centres, means[1], color="tab:blue", lw=1.8, label="after: binned mean")
         if term is not None:
             ax.plot(
                 centres,
-                means[2],
+                means[-1],
                 color="tab:red",
                 ls="--",
                 lw=1.8,
