@@ -247,7 +247,7 @@ def _smooth(y: np.ndarray, width: int) -> np.ndarray:
 
 def _ems_title(before: np.ndarray, after: np.ndarray) -> str:
     b, a = float(np.mean(before**2)), float(np.mean(after**2))
-    return f"EMS {fmt(b, 4)} → {fmt(a, 4)} N² ({_pct(b, a)})"
+    return f"EMS {fmt(b, 5)} → {fmt(a, 5)} N² ({_pct(b, a)})"
 
 
 def _shade(ax: Any, location: Mapping[str, Any], key: str) -> None:
@@ -308,7 +308,7 @@ def overview_figure(diag: Diagnosis, before: np.ndarray, after: np.ndarray, path
     what = (
         _ems_title(before, after)
         if diag.findings
-        else (f"no finding, EMS {fmt(float(np.mean(before**2)), 4)} N²")
+        else (f"no finding, EMS {fmt(float(np.mean(before**2)), 5)} N²")
     )
     fig.suptitle(f"{Path(diag.recording).name}: equation-error residual, {what}")
     fig.tight_layout()
@@ -626,11 +626,41 @@ def _next_steps(diag: Diagnosis, bounded: Sequence[str]) -> list[str]:
             )
         else:
             steps.append(
-                "Use the base model: within this record's noise it explains the motion. "
-                "Confirm "
-                "on a second recording with `fricjax validate`."
+                "No catalogue term is missing at this record's noise level: identify the "
+                "base model (`fricjax identify`) and check it on a second recording "
+                "(`fricjax validate`, `fricjax simulate`)."
             )
+    ident = diag.extra.get("base_identify_ems")
+    ems = diag.fit["before"]["ems"]
+    if ident is not None and math.isfinite(ident) and ems > 2.0 * ident:
+        steps.append(
+            f"The diagnosis' base fit leaves EMS {fmt(ems, 5)} N², `identify` with the same "
+            f"config {fmt(ident, 5)} N²: the tests were made around the poorer fit, so an "
+            "effect may hide in what it leaves. Compare the two fits (`models.h5` group "
+            "`base` against `fricjax identify`) before ruling effects out."
+        )
     return steps
+
+
+def simulation_blocks(diag: Diagnosis) -> list[Block]:
+    """What the output-error test asked, where it ran and named nothing."""
+    sim = diag.extra.get("simulation_test")
+    if not sim or sim.get("chosen"):
+        return []
+    cands = sorted(sim.get("candidates", []), key=lambda c: -c["delta_bic"])
+    text = (
+        "Equation error named nothing here, so the friction laws were also tested by "
+        "simulation (output error of short simulated segments), where how the plant stops "
+        "and breaks away shows; none was named."
+    )
+    if cands:
+        best = cands[0]
+        text += (
+            f" Best candidate: `{best['effect']}`, ΔBIC {fmt(best['delta_bic'], 4)}, "
+            f"p = {best['p_value']:.2g} (a term must clear the ΔBIC bar, 10 by default, "
+            "with a significant p)."
+        )
+    return [Para(text)]
 
 
 def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
@@ -684,6 +714,7 @@ def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
                     "note",
                 )
             )
+        blocks += simulation_blocks(diag)
         if "residual_v" in figures:
             blocks.append(
                 Image(
@@ -721,8 +752,9 @@ def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
         Heading("Overview figure"),
         Image(
             figures["residual_time"],
-            "Residual before (top) and after (bottom) against time: grey samples, red "
-            "running mean; orange: where a finding acts in time; purple ticks: samples at rest.",
+            ("Residual before (top) and after (bottom)" if diag.findings else "Base residual")
+            + " against time: grey samples, red running mean; orange: where a finding acts "
+            "in time; purple ticks: samples at rest.",
         ),
     ]
     return blocks
