@@ -230,8 +230,10 @@ def located_variable(finding: Mapping[str, Any]) -> str:
 
 
 def _binned(xs: np.ndarray, ys: Sequence[np.ndarray], n_bins: int) -> tuple[np.ndarray, ...]:
-    """Mean of each ``ys`` in quantile bins of ``xs``: (bin centres, means...)."""
-    edges = np.unique(np.quantile(xs, np.linspace(0, 1, n_bins + 1)))
+    """Mean of each ``ys`` in equal-width bins of ``xs`` (empty ones dropped): (bin centres,
+    means...). Equal widths resolve a narrow place the plant passes quickly (few samples),
+    which quantile bins would merge with its surroundings."""
+    edges = np.linspace(float(np.min(xs)), float(np.max(xs)), n_bins + 1)
     idx = np.clip(np.searchsorted(edges, xs, side="right") - 1, 0, len(edges) - 2)
     keep = np.bincount(idx, minlength=len(edges) - 1) > 0
     count = np.bincount(idx, minlength=len(edges) - 1)[keep]
