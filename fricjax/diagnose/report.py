@@ -478,7 +478,8 @@ def noise_blocks(diag: Diagnosis) -> list[Block]:
             f"|v| < {band:.3g} m/s, the band |v| < {REST_KAPPA:g}·σ_v where noise could flip "
             f"the sign of v (σ_v = σ_x·{gain_v:.3g}/s through the velocity filter, with the "
             f"σ_x ≈ {length(sigma_rest)} of the first base fit). They are left out of the "
-            "equation-error tests; low-speed physics there is tested by simulation instead."
+            "equation-error tests; only the simulation (output-error) test can judge "
+            "low-speed physics there."
         )
         if own_share < 0.5 * share:
             text += (
