@@ -810,11 +810,13 @@ def heldout_blocks(diag: Diagnosis) -> list[Block]:
     if not diag.heldout:
         return []
     h = diag.heldout
+    # the whitened residual is in m under displacement noise, in noise units under spectral
+    unit = "" if diag.selection.whitener.spectral else " m²"
     blocks: list[Block] = [
         Heading("Held-out check"),
         Para(
             f"Fitted without the {h.get('on')} and scored on it: whitened RSS "
-            f"{fmt(h['rss_w_before'], 6)} → {fmt(h['rss_w_after'], 6)} over {h['dof']} "
+            f"{fmt(h['rss_w_before'], 6)} → {fmt(h['rss_w_after'], 6)}{unit} over {h['dof']} "
             f"noise dimensions ({100 * h['rss_w_improvement']:+.1f} %); EMS "
             f"{fmt(h['ems_before'], 6)} → {fmt(h['ems_after'], 6)} N² "
             f"({100 * h['ems_improvement']:+.1f} %). Decided by the {h['metric']} (the "
