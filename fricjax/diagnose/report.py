@@ -560,9 +560,57 @@ def fit_sentence(diag: Diagnosis) -> str:
     return text + "."
 
 
+def _not_tested(diag: Diagnosis) -> list[str]:
+    """Candidates a time limit left untested (a diagnosis with a stage clock), else []."""
+    clock = getattr(diag, "clock", None)
+    return list(clock.not_tested()) if clock is not None else []
+
+
+def timing_blocks(diag: Diagnosis) -> list[Block]:
+    """Wall time per stage, the limits, and what a limit left out, each by name."""
+    clock = getattr(diag, "clock", None)
+    if clock is None:
+        return []
+    from fricjax.diagnose.stages import STAGES
+
+    t = clock.summary()
+    limits = t["limits_s"]
+    rows = tuple(
+        (k, f"{t['stages_s'][k]:.1f}", fmt(limits.get(k), 4) if k in limits else "–")
+        for k in STAGES
+        if k in t["stages_s"]
+    )
+    blocks: list[Block] = [
+        Heading("Time"),
+        Para(
+            f"{t['total_s']:.1f} s in all (limit {fmt(limits['total'], 4)} s); by stage "
+            "(the report's own time so far):"
+        ),
+        Table(("stage", "time [s]", "limit [s]"), rows),
+    ]
+    if t["skipped"]:
+        blocks += [
+            Para("**Time limit hit**: this diagnosis is incomplete; what was left out:", "note"),
+            Items(
+                tuple(
+                    f"at {s['stage']} ({s['at_s']:.1f} s, {s['limit']} limit): {s['what']}"
+                    for s in t["skipped"]
+                )
+            ),
+            Para("Raise `--time-limit` or `[diagnose] stage_limits` to test them."),
+        ]
+    return blocks
+
+
 def _verdict(diag: Diagnosis) -> str:
     named = [f["effect"] for f in diag.findings if f["effect"] != "unexplained"]
     unexplained = sum(f["effect"] == "unexplained" for f in diag.findings)
+    if not diag.findings and _not_tested(diag):
+        return (
+            "**Nothing found among the candidates tested**; not tested (time limit): "
+            + ", ".join(f"`{e}`" for e in _not_tested(diag))
+            + " (section Time)."
+        )
     if not diag.findings:
         return (
             "**Nothing is missing**: no catalogue term lowers BIC significantly and the "
@@ -579,6 +627,8 @@ def _verdict(diag: Diagnosis) -> str:
             f"**{unexplained} unexplained structure{'s' if unexplained > 1 else ''}** "
             "(significant, but no catalogue term explains it in a way that carries over)"
         )
+    if _not_tested(diag):
+        parts.append("not tested (time limit): " + ", ".join(f"`{e}`" for e in _not_tested(diag)))
     return "; ".join(parts) + "."
 
 
@@ -667,7 +717,7 @@ def simulation_blocks(diag: Diagnosis) -> list[Block]:
 
 
 def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
-    """The whole report, section by section (see docs/reading-a-report.md)."""
+    """The whole report, section by section (see docs/diagnosis-report.md)."""
     blocks: list[Block] = [
         Heading(f"Diagnosis of `{diag.recording}`", 1),
         Para(f"Base model: `{diag.base_model}`. Verdict: {_verdict(diag)}"),
@@ -760,6 +810,7 @@ def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
             "in time; purple ticks: samples at rest.",
         ),
     ]
+    blocks += timing_blocks(diag)
     return blocks
 
 
