@@ -606,11 +606,7 @@ def _verdict(diag: Diagnosis) -> str:
     named = [f["effect"] for f in diag.findings if f["effect"] != "unexplained"]
     unexplained = sum(f["effect"] == "unexplained" for f in diag.findings)
     if not diag.findings and _not_tested(diag):
-        return (
-            "**Nothing found among the candidates tested**; not tested (time limit): "
-            + ", ".join(f"`{e}`" for e in _not_tested(diag))
-            + " (section Time)."
-        )
+        return "**Nothing found among the candidates tested** (the others: see below)."
     if not diag.findings:
         return (
             "**Nothing is missing**: no catalogue term lowers BIC significantly and the "
@@ -627,8 +623,6 @@ def _verdict(diag: Diagnosis) -> str:
             f"**{unexplained} unexplained structure{'s' if unexplained > 1 else ''}** "
             "(significant, but no catalogue term explains it in a way that carries over)"
         )
-    if _not_tested(diag):
-        parts.append("not tested (time limit): " + ", ".join(f"`{e}`" for e in _not_tested(diag)))
     return "; ".join(parts) + "."
 
 
@@ -721,8 +715,15 @@ def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
     blocks: list[Block] = [
         Heading(f"Diagnosis of `{diag.recording}`", 1),
         Para(f"Base model: `{diag.base_model}`. Verdict: {_verdict(diag)}"),
-        Para(fit_sentence(diag)),
     ]
+    if _not_tested(diag):
+        blocks.append(
+            Para(
+                f"**Not tested (time limit)**: {', '.join(_not_tested(diag))} (section Time).",
+                "note",
+            )
+        )
+    blocks += [Para(fit_sentence(diag))]
     blocks += noise_blocks(diag)
     bounded_names: list[str] = []
     base_bounds = base_on_bounds(diag)
