@@ -19,6 +19,7 @@ from fricjax.diagnose.report import (
     fit_sentence,
     length,
     on_bound,
+    params_text,
     rest_band,
     where_text,
 )
@@ -72,6 +73,19 @@ def test_a_parameter_on_its_bound_is_named_as_such() -> None:
     assert on_bound(spec, "mass_eps", 0.29) == ""
     fixed = ParamSpec((Param("mass", "kg", 45.0, 45.0, 45.0, free=False),))
     assert on_bound(fixed, "mass", 45.0) == ""  # a fixed value is given, not fitted
+
+
+def test_a_finding_size_on_its_bound_is_reported_as_a_limit_with_its_range() -> None:
+    """A servo record's mass error of +42.9 % sat exactly on its bound: the report says the
+    search stopped there, with the range, instead of quoting it as a measured value."""
+    spec = ParamSpec((Param("mass_eps", "1", -0.3, 0.3, 0.0, null=0.0),))
+    diag = SimpleNamespace(selection=SimpleNamespace(spec=spec, steps=[]))
+    shown, bounds = params_text(diag, {"mass_eps": 0.3})
+    assert shown == "mass_eps = 0.3"
+    ((name, why),) = bounds
+    assert name == "mass_eps" and "upper bound" in why and "[-0.3, 0.3]" in why
+    assert "not a measurement" in why
+    assert params_text(diag, {"mass_eps": 0.1})[1] == []
 
 
 def test_locations_carry_their_units() -> None:
