@@ -606,6 +606,9 @@ def fleet_recordings(
     cfg = load_config(config)
     settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source, overrides=overrides)
     members = load_members(recordings, cfg, order_by=order_by, mass=mass)
+    outputs = [Path(out), Path(out).with_suffix(".md"), Path(out).with_suffix(".png")]
+    inputs = {f"recording {m.path}": m.path for m in members}
+    check_outputs(outputs, {**inputs, "--config": cfg.source}, "--out")
     size = default_shard_size() if shard_size is None else shard_size
     with _dask_client(workers, scheduler) as client:
         fits = run_fleet(members, settings, shard_size=size, client=client, on_shard=on_shard)

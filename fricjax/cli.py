@@ -527,6 +527,7 @@ def diagnose(
     for item in diag.clock.summary()["skipped"]:
         typer.echo(f"time limit at {item['stage']}: {item['what']}")
     typer.echo(f"report: {paths['report']}")
+    typer.echo(f"html: {paths['html']}")
 
 
 @app.command("init-config")

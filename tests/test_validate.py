@@ -22,8 +22,11 @@ from fricjax.validate import (
     equation_error,
     fit_simulation_error,
     format_validation,
+    initial_state,
+    open_loop_rmse,
     parse_controller,
     simulation_error,
+    simulation_rmse,
     validate_model,
     validate_recording,
 )
@@ -231,3 +234,32 @@ def test_cli_validate(closed_loop_rec, tmp_path):
     bad = run(str(rec_path), "--results", str(params))
     assert bad.returncode == 2
     assert bad.stderr.strip() == f"error: {params}: holds no config; give --config"
+
+
+def test_the_benchmark_rmse_scores_only_the_samples_after_the_initialisation_window():
+    y = np.linspace(0.0, 0.2, 500)
+    y_sim = y + 0.003  # 3 mm everywhere after the window
+    y_sim[:20] += 5.0  # what the window holds is not scored
+    assert simulation_rmse(y_sim, y, 20) == pytest.approx(0.003, rel=1e-12)
+    assert simulation_rmse(y_sim, y, 0) > 1.0
+    with pytest.raises(FricjaxError, match="n_init"):
+        simulation_rmse(y_sim, y[:-1], 20)
+
+
+def test_the_initial_state_is_the_quadratic_through_the_first_samples_only():
+    t = np.arange(100) * DT
+    x = 0.01 + 0.05 * t + 0.5 * 1.3 * t**2
+    x[20:] = 99.0  # samples after the window are never read
+    x0, v0 = initial_state(t, x, 20)
+    assert x0 == pytest.approx(0.01, abs=1e-12) and v0 == pytest.approx(0.05, abs=1e-9)
+
+
+def test_open_loop_rmse_is_small_at_the_truth_and_grows_with_a_friction_error(cfg, closed_loop_rec):
+    """The recorded controller output drives the plant open loop; the position is set once
+    from x[:20] (the body rests there) and never fed back."""
+    at_truth = open_loop_rmse(closed_loop_rec, cfg, TRUTH)
+    off = open_loop_rmse(closed_loop_rec, cfg, {**TRUTH, "Fv": 1.1 * TRUTH["Fv"]})
+    # the loop held u over each period, the open-loop simulation interpolates it linearly:
+    # a small drift at the truth, none of it from the parameters
+    assert at_truth < 1e-4  # [m]
+    assert off > 5 * at_truth  # 0.52 mm against 0.05 mm

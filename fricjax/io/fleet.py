@@ -43,7 +43,7 @@ import numpy as np
 
 from fricjax.errors import FricjaxError, where
 from fricjax.fleet import OK, FleetFit
-from fricjax.io.atomic import atomic_path
+from fricjax.io.atomic import write_hdf5_atomic
 from fricjax.io.results import _attr, _str_array, _strs, package_versions
 
 FORMAT = "fricjax-fleet-v1"
@@ -104,7 +104,8 @@ def write_fleet(fleet: FleetFile, path: str | Path) -> Path:
     path = Path(path)
     fits = fleet.fits
     fixed_names = sorted({k for f in fits for k in f.fixed})
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+
+    def fill(f: h5py.File) -> None:
         for key, value in fleet.attrs.items():
             f.attrs[key] = value
         f.attrs["n_recordings"] = len(fits)
@@ -136,7 +137,8 @@ def write_fleet(fleet: FleetFile, path: str | Path) -> Path:
         for key in _FIT_INTS:
             g[key] = np.array([getattr(fit, key) for fit in fits], dtype=np.int64)
         g["refined"] = np.array([fit.refined for fit in fits], dtype=bool)
-    return path
+
+    return write_hdf5_atomic(path, fill)
 
 
 def read_fleet(path: str | Path) -> FleetFile:

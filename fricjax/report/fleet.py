@@ -41,8 +41,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.stats import norm
 
-from fricjax.io.atomic import atomic_path, write_text_atomic
+from fricjax.io.atomic import write_text_atomic
 from fricjax.io.fleet import FleetFile
+from fricjax.report.plots import save
 
 ALPHA = 0.05
 
@@ -211,11 +212,7 @@ def fleet_figure(fleet: FleetFile, result: Drift, path: str | Path) -> Path:
         f"recording (ordered by {by}); red: moved beyond σ (|z| > {result.threshold:.3g})"
     )
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=90)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def write_fleet_report(fleet: FleetFile, markdown: str | Path, png: str | Path) -> Drift:
