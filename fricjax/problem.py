@@ -21,7 +21,7 @@ specialise on them at trace time.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -269,13 +269,15 @@ def build_problem(
     spec: ParamSpec = config.spec
     if not config.mass_in_spec:
         m = require_mass(rec)
-        spec = spec.extended([MASS.fixed_at(m)])
+        # bounds = the value: the recording's mass is a measurement, not a search box, so
+        # no box of the config can be blamed for it
+        spec = spec.extended([replace(MASS, lower=m, upper=m, init=m, free=False)])
     if needs_input(config.model) and rec.u is None:
         raise FricjaxError(
             f"{where(rec.path or rec.name, '/u')}: missing (model term measured_input needs "
             "the recorded drive input)"
         )
-    d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F)
+    d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F, source=rec.path or rec.name)
     u = d.u if d.u is not None else np.zeros_like(d.t)
     return Problem(
         model=config.model,

@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 import scipy.io
+from scipy.io.matlab import MatReadError
 from jaxtyping import Float
 
-from fricjax.data.recording import MAX_STEP_JITTER, Recording, _validate
+from fricjax.data.recording import MASS_FLAG, MAX_STEP_JITTER, Recording, _validate
 from fricjax.errors import FricjaxError, where
 
 __all__ = ["EMPS_MAP", "MAX_GRID_DEVIATION", "import_mat"]
@@ -82,16 +83,18 @@ def import_mat(
             raise FricjaxError(f"{where(path, f'mapping {key!r}')}: missing (t and x are needed)")
     if not path.is_file():
         raise FricjaxError(f"{where(path)}: no such file")
+    if path.stat().st_size == 0:
+        raise FricjaxError(f"{where(path)}: empty file (0 bytes), not a MAT file")
     try:
         data = scipy.io.loadmat(path)
-    except (ValueError, NotImplementedError, OSError, TypeError) as exc:
+    except (ValueError, NotImplementedError, OSError, TypeError, MatReadError) as exc:
         raise FricjaxError(
             f"{where(path)}: cannot read as a MAT file v4-v7.2 ({exc}); "
             "v7.3 files are HDF5: save with -v7 or convert"
         ) from None
     available = sorted(k for k in data if not k.startswith("__"))
     labels = {key: f"variable {var!r}" for key, var in mapping.items()}
-    labels["mass"] = "mass"
+    labels["mass"] = MASS_FLAG  # a MAT file holds no mass: it came from the caller
     signals: dict[str, np.ndarray] = {}
     for key, var in mapping.items():
         if var not in data:
