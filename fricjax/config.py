@@ -182,7 +182,9 @@ def _parse_param(name: str, entry: Any, default: Param, source: str) -> Param:
             raise FricjaxError(f"{loc}: {key} is not finite ({value})")
         return value
 
-    free = bool(entry.get("free", "value" not in entry))
+    free = entry.get("free", "value" not in entry)
+    if not isinstance(free, bool):
+        raise FricjaxError(f"{loc}: free must be true or false, got {free!r}")
     if not free:
         if "value" not in entry and "init" not in entry:
             raise FricjaxError(f"{loc}: fixed parameter needs a value")
@@ -209,4 +211,6 @@ def _parse_param(name: str, entry: Any, default: Param, source: str) -> Param:
         raise FricjaxError(
             f"{loc}: initial value {init:g} outside its bounds [{lower:g}, {upper:g}]"
         )
-    return Param(name, unit, lower, upper, init, free=True, null=default.null, domain=default.domain)
+    return Param(
+        name, unit, lower, upper, init, free=True, null=default.null, domain=default.domain
+    )

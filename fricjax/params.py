@@ -55,8 +55,7 @@ def check_value(p: Param, value: object, loc: str) -> float:
         raise FricjaxError(f"{loc}: not a finite number ({value})")
     if not p.domain.contains(value):
         raise FricjaxError(
-            f"{loc}: {value:g} is outside the physical domain of {p.name} ({p.domain}, "
-            f"{p.unit})"
+            f"{loc}: {value:g} is outside the physical domain of {p.name} ({p.domain}, {p.unit})"
         )
     return value
 

@@ -21,10 +21,16 @@ from pathlib import Path
 
 import numpy as np
 import scipy.io
-from scipy.io.matlab import MatReadError
 from jaxtyping import Float
+from scipy.io.matlab import MatReadError
 
-from fricjax.data.recording import MASS_FLAG, MAX_STEP_JITTER, Recording, _validate
+from fricjax.data.recording import (
+    MASS_FLAG,
+    MAX_STEP_JITTER,
+    Recording,
+    _check_mass,
+    _validate,
+)
 from fricjax.errors import FricjaxError, where
 
 __all__ = ["EMPS_MAP", "MAX_GRID_DEVIATION", "import_mat"]
@@ -81,6 +87,8 @@ def import_mat(
     for key in ("t", "x"):
         if key not in mapping:
             raise FricjaxError(f"{where(path, f'mapping {key!r}')}: missing (t and x are needed)")
+    if mass is not None:  # a MAT file holds no mass: a bad one is the caller's flag
+        mass = _check_mass(mass, MASS_FLAG)
     if not path.is_file():
         raise FricjaxError(f"{where(path)}: no such file")
     if path.stat().st_size == 0:
@@ -94,7 +102,7 @@ def import_mat(
         ) from None
     available = sorted(k for k in data if not k.startswith("__"))
     labels = {key: f"variable {var!r}" for key, var in mapping.items()}
-    labels["mass"] = MASS_FLAG  # a MAT file holds no mass: it came from the caller
+    labels["mass"] = "mass"
     signals: dict[str, np.ndarray] = {}
     for key, var in mapping.items():
         if var not in data:

@@ -212,7 +212,8 @@ class PreprocessSettings:
             )
             raise FricjaxError(
                 f"{where(recording, '/t')}: {n} samples is too short for the preprocessing "
-                f"({where(self.source or None, f'[{_TABLE}]')}: {why}), which needs at least {need} samples"
+                f"({where(self.source or None, f'[{_TABLE}]')}: {why}), which needs at least "
+                f"{need} samples"
             )
         duration = (n - 1) / sample_rate_hz
         if self.method == "butterworth" and self.cutoff_hz * duration < 1.0:

@@ -319,7 +319,7 @@ def _check_scale(rec: Recording, name: Any) -> None:
         moving = key in ("x", "r")
         scale = 4.0 * size / dt**2 if moving else size
         if scale * math.sqrt(n) > MAX_MAGNITUDE:
-            what = f" give accelerations up to ~{scale:.3g} m/s^2 (4*max|x|/dt^2)," if moving else ""
+            what = f" give accelerations up to ~{scale:.3g} m/s^2 (4*max|x|/dt^2)," * moving
             raise FricjaxError(
                 f"{name(key)}: values up to {size:.3g}{what} too large to square and sum "
                 f"in float64 (limit {MAX_MAGNITUDE:g}/sqrt(n)): wrong units?"
@@ -358,7 +358,7 @@ def read_recording(path: str | Path, *, mass: float | None = None) -> Recording:
     Args:
         path: the file; its suffix picks the format.
         mass: moving mass, kg; overrides the HDF5 attribute (which is then not read) and
-            is the only source of mass for CSV files.
+            is the only source of mass for CSV files. A bad one is blamed on ``--mass``.
 
     Never opens the ``/truth`` group.
 

@@ -223,7 +223,9 @@ class _RunReader:
         if ds.dtype.kind not in kinds:
             raise self.fail(key, f"wrong dtype {ds.dtype} (expected numbers)")
         got = ds.shape
-        if len(got) != len(shape) or any(w is not None and g != w for g, w in zip(got, shape)):
+        if len(got) != len(shape) or any(
+            w is not None and g != w for g, w in zip(got, shape, strict=True)
+        ):
             want = ", ".join("any" if w is None else str(w) for w in shape)
             raise self.fail(
                 key, f"has shape {got}, expected ({want}) for the {self.d} names in params/names"
@@ -273,9 +275,7 @@ def _read_run(path: Path, label: str, g: Any) -> RunResult:
     costs = {key: r.number_attr(key, required=True) for key in _COST_ATTRS}
     for key in _NUMBER_ATTRS:
         r.number_attr(key, required=False)
-    run_attrs = {
-        k: _attr(v) for k, v in g.attrs.items() if k not in ("method", *_COST_ATTRS)
-    }
+    run_attrs = {k: _attr(v) for k, v in g.attrs.items() if k not in ("method", *_COST_ATTRS)}
     chain_x = r.floats("chains/x", (None, d), finite=False)
     n_levels = None
     traces = {}
