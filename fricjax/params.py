@@ -248,7 +248,7 @@ def _check_param(p: Param, source: str) -> None:
             raise FricjaxError(f"{loc}: {label} is not a finite number ({value})")
     if p.lower > p.upper:
         raise FricjaxError(f"{loc}: lower bound {p.lower:g} > upper bound {p.upper:g}")
-    for label, value in (("lower bound", p.lower), ("upper bound", p.upper), ("value", p.init)):
+    for label, value in (("value", p.init), ("lower bound", p.lower), ("upper bound", p.upper)):
         if not p.domain.contains(value):
             raise FricjaxError(
                 f"{loc}: {label} {value:g} is outside the physical domain of {p.name} "
