@@ -175,6 +175,10 @@ def _attr(value: Any) -> Any:
 
 #: Run attributes that must be numbers when present (``show`` formats them as such).
 _NUMBER_ATTRS = ("alpha", "seed", "n_chains", "wall_time", "levels", "n_evals", "t0")
+#: Parameter datasets that must be finite (the values and their box) and those that hold
+#: NaN where the uncertainty was not computed.
+_BOX = ("value", "lower", "upper")
+_SIGMA = ("std", "rel_std")
 #: Run attributes the best-run choice and the fit figures read: finite numbers, required.
 _COST_ATTRS = ("cost", "ems", "cost_search", "ems_search")
 
@@ -258,6 +262,11 @@ def _read_run(path: Path, label: str, g: Any) -> RunResult:
     if len(set(names)) != d:
         dup = next(n for n in names if names.count(n) > 1)
         raise r.fail("params/names", f"{dup!r} appears more than once")
+    # the parameter table first: a wrong d shows up as the table's fault, not a trace's
+    units, flags = r.strings("params/units", d), r.strings("params/flags", d)
+    table = {key: r.floats(f"params/{key}", (d,), finite=True) for key in _BOX}
+    table.update({key: r.floats(f"params/{key}", (d,), finite=False) for key in _SIGMA})
+    corr = r.floats("params/corr", (d, d), finite=False)
     fixed_group = g.get("fixed")
     if not isinstance(fixed_group, h5py.Group):
         raise r.fail("fixed", "missing group of fixed parameters (attrs name -> value)")
@@ -290,20 +299,19 @@ def _read_run(path: Path, label: str, g: Any) -> RunResult:
         label=label,
         method=method,
         names=names,
-        units=r.strings("params/units", d),
-        value=r.floats("params/value", (d,), finite=True),
-        lower=r.floats("params/lower", (d,), finite=True),
-        upper=r.floats("params/upper", (d,), finite=True),
+        units=units,
+        value=table["value"],
+        lower=table["lower"],
+        upper=table["upper"],
         fixed=fixed,
         cost=costs["cost"],
         ems=costs["ems"],
         cost_search=costs["cost_search"],
         ems_search=costs["ems_search"],
-        # NaN where the uncertainty was not computed
-        std=r.floats("params/std", (d,), finite=False),
-        rel_std=r.floats("params/rel_std", (d,), finite=False),
-        corr=r.floats("params/corr", (d, d), finite=False),
-        flags=r.strings("params/flags", d),
+        std=table["std"],
+        rel_std=table["rel_std"],
+        corr=corr,
+        flags=flags,
         chain_x=chain_x,
         chain_cost=r.floats("chains/cost", (chain_x.shape[0],), finite=False),
         traces=traces,
