@@ -45,12 +45,12 @@ def check_values(named: Mapping[str, float], spec: ParamSpec, source: str) -> No
 def check_value(p: Param, value: object, loc: str) -> float:
     """``value`` as a float if it is a finite number inside ``p.domain``, else FricjaxError
     naming ``loc``."""
-    ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
-        value, bool | np.bool_
-    )
-    if not ok:
-        raise FricjaxError(f"{loc}: must be a number, got {value!r}")
-    value = float(value)  # type: ignore[arg-type]
+    try:
+        if isinstance(value, bool | np.bool_ | str | bytes):
+            raise TypeError
+        value = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise FricjaxError(f"{loc}: must be a number, got {value!r}") from None
     if not math.isfinite(value):
         raise FricjaxError(f"{loc}: not a finite number ({value})")
     if not p.domain.contains(value):
@@ -243,17 +243,10 @@ class ParamSpec:
 
 def _check_param(p: Param, source: str) -> None:
     loc = where(source, f"[params].{p.name}")
-    for label, value in (("lower", p.lower), ("upper", p.upper), ("init", p.init)):
-        if not math.isfinite(value):
-            raise FricjaxError(f"{loc}: {label} is not a finite number ({value})")
+    for label, value in (("value", p.init), ("lower", p.lower), ("upper", p.upper)):
+        check_value(p, value, f"{loc}: {label}")
     if p.lower > p.upper:
         raise FricjaxError(f"{loc}: lower bound {p.lower:g} > upper bound {p.upper:g}")
-    for label, value in (("value", p.init), ("lower bound", p.lower), ("upper bound", p.upper)):
-        if not p.domain.contains(value):
-            raise FricjaxError(
-                f"{loc}: {label} {value:g} is outside the physical domain of {p.name} "
-                f"({p.domain}, {p.unit})"
-            )
     if not (p.lower <= p.init <= p.upper):
         what = "fixed value" if not p.free else "initial value"
         raise FricjaxError(

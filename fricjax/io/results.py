@@ -231,9 +231,8 @@ class _RunReader:
             w is not None and g != w for g, w in zip(got, shape, strict=True)
         ):
             want = ", ".join("any" if w is None else str(w) for w in shape)
-            raise self.fail(
-                key, f"has shape {got}, expected ({want}) for the {self.d} names in params/names"
-            )
+            why = f" for the {self.d} names in params/names" if self.d in shape else ""
+            raise self.fail(key, f"has shape {got}, expected ({want}){why}")
         arr = np.asarray(ds[()], dtype=np.float64 if kinds != "iu" else np.int64)
         if finite and not np.isfinite(arr).all():
             i = int(np.argmax(~np.isfinite(arr.reshape(-1))))
