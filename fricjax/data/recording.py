@@ -225,6 +225,8 @@ def validate(rec: Recording, *, min_samples: int = 16) -> Recording:
 
     Checks, in order: every signal is real-valued and 1-D; x, u, F have the length of t;
     n ≥ ``min_samples``; no NaN or inf (first index reported); t strictly increasing;
+    t in seconds, not sample indices (integers in steps of 1) nor a step below
+    :data:`MIN_STEP`; no signal so large that its squares overflow (:data:`MAX_MAGNITUDE`);
     uniform step, max_k |Δt_k − dt| / dt < 1e-6 with dt the mean step; mass, if given,
     a positive finite number of kg.
 
@@ -277,9 +279,8 @@ def _validate(
         )
     if n > 1 and float(t[1] - t[0]) == 1.0 and np.all(t == np.round(t)):
         raise FricjaxError(
-            f"{name('t')}: t looks like sample indices, not seconds ({float(t[0]):g}, "
-            f"{float(t[1]):g}, {float(t[2]) if n > 2 else ''}…): store time in seconds, "
-            "t_k = t_0 + k*dt"
+            f"{name('t')}: t looks like sample indices, not seconds (integers from "
+            f"{float(t[0]):g} in steps of 1): store time in seconds, t_k = t_0 + k*dt"
         )
     if n > 1 and float(t[-1] - t[0]) / (n - 1) < MIN_STEP:
         raise FricjaxError(
