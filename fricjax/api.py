@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import tomllib
 from pathlib import Path
@@ -17,7 +18,7 @@ from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.data.recording import Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import check_outputs
-from fricjax.params import check_known
+from fricjax.params import check_values
 from fricjax.problem import Problem, build_problem
 
 if TYPE_CHECKING:
@@ -235,22 +236,33 @@ def read_params(path: str | Path) -> dict[str, float]:
             best = min(runs, key=lambda r: r.cost)
             return best.params
         if suffix == ".json":
-            raw: Any = json.loads(path.read_text())
+            raw: Any = json.loads(path.read_text(encoding="utf-8"))
         elif suffix == ".toml":
-            raw = tomllib.loads(path.read_text())
+            raw = tomllib.loads(path.read_text(encoding="utf-8"))
             raw = raw.get("params", raw)
         else:
             raise FricjaxError(f"{where(path)}: parameters must be .toml, .json or results .h5")
     except (json.JSONDecodeError, tomllib.TOMLDecodeError) as err:
         raise FricjaxError(f"{where(path)}: cannot parse ({err})") from None
+    except UnicodeDecodeError as err:
+        raise FricjaxError(f"{where(path)}: not UTF-8 text (byte {err.start})") from None
+    except OSError as err:
+        raise FricjaxError(f"{where(path)}: cannot read ({err.strerror})") from None
+    if not isinstance(raw, dict):
+        raise FricjaxError(
+            f"{where(path)}: top level must be a table of name = value, got "
+            f"{type(raw).__name__} {json.dumps(raw)[:40] if suffix == '.json' else repr(raw)}"
+        )
     out = {}
     for key, value in raw.items():
         if isinstance(value, dict):
             value = value.get("value", value.get("init"))
-        try:
-            out[key] = float(value)
-        except (TypeError, ValueError):
-            raise FricjaxError(f"{where(path, key)}: not a number ({value!r})") from None
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number:
+            raise FricjaxError(f"{where(path, key)}: not a number ({value!r})")
+        if not math.isfinite(value):
+            raise FricjaxError(f"{where(path, key)}: not a finite number ({value})")
+        out[key] = float(value)
     return out
 
 
@@ -265,7 +277,7 @@ def cost_at(
     _, cfg, problem = load(recording, config, mass=mass)
     if params is not None:
         named, source = read_params(params), str(params)
-        check_known(named, problem.spec.names, source)
+        check_values(named, problem.spec, source)
     else:
         from fricjax.data.twin import read_truth
 

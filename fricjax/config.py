@@ -69,11 +69,16 @@ def load_config(path: str | Path) -> Config:
     """Read and validate a TOML config file."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise FricjaxError(f"{path}: config file not found") from None
     except OSError as err:
         raise FricjaxError(f"{path}: cannot read config ({err.strerror})") from None
+    except UnicodeDecodeError as err:
+        raise FricjaxError(
+            f"{path}: not a TOML config (not UTF-8 text: byte {err.start} is "
+            f"{err.object[err.start : err.start + 1]!r})"
+        ) from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -88,6 +93,9 @@ def parse_config(raw: Mapping[str, Any], *, source: str = "config", text: str = 
             raise FricjaxError(
                 f"{where(source, key)}: unknown section (known: {', '.join(SECTIONS)})"
             )
+    for key, value in raw.items():
+        if not isinstance(value, Mapping):
+            raise FricjaxError(f"{where(source, f'[{key}]')}: must be a table, got {value!r}")
     model = _parse_model(raw.get("model"), source)
     axis = _parse_axis(raw["model"], source)
     spec = _parse_params(raw.get("params", {}), model, source, axis)
@@ -119,10 +127,17 @@ def _parse_model(table: Any, source: str) -> Model:
                 f"(known: {', '.join(sorted(TERMS))})"
             )
         options = table.get(name, {})
+        if not isinstance(options, Mapping):
+            raise FricjaxError(
+                f"{where(source, f'[model.{name}]')}: must be a table of the term's options, "
+                f"got {options!r}"
+            )
         try:
             terms.append(make_term(name, options))
         except TypeError as err:
             raise FricjaxError(f"{where(source, f'[model.{name}]')}: bad option ({err})") from None
+        except ValueError as err:  # the term's own check names the option
+            raise FricjaxError(f"{where(source, f'[model.{name}]')}.{err}") from None
     return Model(tuple(terms))
 
 
@@ -177,7 +192,9 @@ def _parse_param(
             raise FricjaxError(f"{loc}: {key} is not finite ({value})")
         return value
 
-    free = bool(entry.get("free", "value" not in entry))
+    free = entry.get("free", "value" not in entry)
+    if not isinstance(free, bool):
+        raise FricjaxError(f"{loc}: free must be true or false, got {free!r}")
     if not free:
         if "value" not in entry and "init" not in entry:
             raise FricjaxError(f"{loc}: fixed parameter needs a value")
@@ -190,7 +207,9 @@ def _parse_param(
             raise FricjaxError(
                 f"{loc}: fixed value {value:g} outside its bounds [{lower:g}, {upper:g}]"
             )
-        return Param(name, unit, lower, upper, value, free=False, null=default.null)
+        return Param(
+            name, unit, lower, upper, value, free=False, null=default.null, domain=default.domain
+        )
     for key in ("lower", "upper"):
         if key not in entry:
             raise FricjaxError(f"{loc}: free parameter needs {key}")
@@ -202,4 +221,6 @@ def _parse_param(
         raise FricjaxError(
             f"{loc}: initial value {init:g} outside its bounds [{lower:g}, {upper:g}]"
         )
-    return Param(name, unit, lower, upper, init, free=True, null=default.null)
+    return Param(
+        name, unit, lower, upper, init, free=True, null=default.null, domain=default.domain
+    )

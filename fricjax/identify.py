@@ -165,6 +165,13 @@ class IdentifySettings:
         # The separable search has a few dimensions instead of 26: its own, far smaller
         # budget, layered over [anneal] and [search] (CLI overrides still win).
         extra = search.pop(SEPARABLE_TABLE, {})
+        # [search]'s own values are checked before the separable budget may replace them:
+        # a bad one is refused, never silently dropped
+        for key in ("chains", "refine_top"):
+            if key in search:
+                _count(search[key], where(source, f"[search].{key}"))
+        if separable and extra:
+            AnnealSettings.from_dict(anneal_table, source=source)
         if not isinstance(extra, Mapping):
             raise FricjaxError(
                 f"{where(source, f'[search].{SEPARABLE_TABLE}')}: must be a table of chains, "
@@ -173,7 +180,7 @@ class IdentifySettings:
         if separable:
             for key, value in extra.items():
                 if key in ("chains", "refine_top"):
-                    search[key] = value
+                    search[key] = _count(value, where(source, f"[search.{SEPARABLE_TABLE}].{key}"))
                 elif key in anneal_names:
                     anneal_table[key] = value
                 else:
@@ -197,20 +204,14 @@ class IdentifySettings:
             raise FricjaxError(
                 f"{blame('method')}: unknown method {method!r} (known: {', '.join(METHODS)})"
             )
-        ints = {}
-        for key, default in (
-            ("chains", cls.chains),
-            ("seed", cls.seed),
-            ("refine_top", cls.refine_top),
-        ):
-            try:
-                ints[key] = int(search.get(key, default))
-            except (TypeError, ValueError):
-                raise FricjaxError(f"{blame(key)}: not an integer ({search.get(key)!r})") from None
-        for key in ("chains", "refine_top"):
-            if ints[key] < 1:
-                raise FricjaxError(f"{blame(key)}: must be >= 1, got {ints[key]}")
-        chains, seed, top = ints["chains"], ints["seed"], ints["refine_top"]
+        chains = _count(search.get("chains", cls.chains), blame("chains"))
+        top = _count(search.get("refine_top", cls.refine_top), blame("refine_top"))
+        seed = search.get("seed", cls.seed)
+        if not _is_int(seed):
+            raise FricjaxError(f"{blame('seed')}: must be an integer, got {seed!r}")
+        refine_on = search.get("refine", True)
+        if not isinstance(refine_on, bool | np.bool_):
+            raise FricjaxError(f"{blame('refine')}: must be true or false, got {refine_on!r}")
         objective = search.get("objective", cls.objective)
         if objective not in OBJECTIVES:
             raise FricjaxError(
@@ -220,9 +221,9 @@ class IdentifySettings:
         return cls(
             method=method,
             chains=chains,
-            seed=seed,
+            seed=int(seed),
             refine_top=top,
-            refine=bool(search.get("refine", True)),
+            refine=bool(refine_on),
             separable=bool(separable),
             anneal=anneal,
             refiner=RefineSettings.from_dict(dict(tables.get("refine", {})), source=source),
@@ -231,6 +232,19 @@ class IdentifySettings:
                 tables.get(OUTPUT_ERROR_TABLE, {}), source=source
             ),
         )
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+
+
+def _count(value: object, label: str) -> int:
+    """A count setting (chains, refine_top): an integer >= 1, else one line naming it."""
+    if not _is_int(value):
+        raise FricjaxError(f"{label}: must be an integer, got {value!r}")
+    if value < 1:  # type: ignore[operator]
+        raise FricjaxError(f"{label}: must be >= 1, got {value!r}")
+    return int(value)  # type: ignore[arg-type]
 
 
 def identify(

@@ -32,6 +32,63 @@ def check_known(named: Mapping[str, float], names: tuple[str, ...], source: str)
             )
 
 
+def check_values(named: Mapping[str, float], spec: ParamSpec, source: str) -> None:
+    """Refuse, in one line naming ``source`` and the key, a value given for a parameter of
+    ``spec`` that is unknown to the model, not a finite number, or outside the parameter's
+    physical :class:`Domain` (a mass of 0 kg, a Stribeck velocity of −1 m/s): the cost
+    would otherwise be NaN or a force no rig can produce, printed as if it were a result."""
+    check_known(named, spec.names, source)
+    for key, value in named.items():
+        check_value(spec[key], value, where(source, key))
+
+
+def check_value(p: Param, value: object, loc: str) -> float:
+    """``value`` as a float if it is a finite number inside ``p.domain``, else FricjaxError
+    naming ``loc``."""
+    try:
+        if isinstance(value, bool | np.bool_ | str | bytes):
+            raise TypeError
+        value = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise FricjaxError(f"{loc}: must be a number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise FricjaxError(f"{loc}: not a finite number ({value})")
+    if not p.domain.contains(value):
+        raise FricjaxError(
+            f"{loc}: {value:g} is outside the physical domain of {p.name} ({p.domain}, {p.unit})"
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class Domain:
+    """The physically meaningful values of a parameter: ``low < value`` (``low_open``) or
+    ``low <= value``, and ``value <= high``. Outside it the model is undefined or
+    unphysical (division by a zero Stribeck velocity, a non-positive mass)."""
+
+    low: float = -math.inf
+    high: float = math.inf
+    low_open: bool = False
+
+    def contains(self, value: float) -> bool:
+        above = value > self.low if self.low_open else value >= self.low
+        return above and value <= self.high
+
+    def __str__(self) -> str:
+        parts = []
+        if self.low > -math.inf:
+            parts.append(f"{'>' if self.low_open else '>='} {self.low:g}")
+        if self.high < math.inf:
+            parts.append(f"<= {self.high:g}")
+        return " and ".join(parts) or "any real number"
+
+
+#: Any real number (the default: offsets, phases, amplitudes whose sign is a phase shift).
+REAL = Domain()
+#: Strictly positive: masses, Stribeck velocities, shape exponents, frequencies.
+POSITIVE = Domain(0.0, low_open=True)
+
+
 @dataclass(frozen=True)
 class Param:
     """One model parameter.
@@ -43,6 +100,8 @@ class Param:
         init: initial / fixed value.
         free: whether identification may change it.
         null: value at which the term has no effect (nested-model tests); NaN if none.
+        domain: the physically meaningful values (:class:`Domain`); bounds, initial and
+            fixed values, and values read from files must lie in it.
     """
 
     name: str
@@ -52,6 +111,7 @@ class Param:
     init: float
     free: bool = True
     null: float = math.nan
+    domain: Domain = field(default=REAL, compare=False)
 
     def fixed_at(self, value: float) -> Param:
         """This parameter, fixed at ``value``."""
@@ -183,9 +243,8 @@ class ParamSpec:
 
 def _check_param(p: Param, source: str) -> None:
     loc = where(source, f"[params].{p.name}")
-    for label, value in (("lower", p.lower), ("upper", p.upper), ("init", p.init)):
-        if not math.isfinite(value):
-            raise FricjaxError(f"{loc}: {label} is not a finite number ({value})")
+    for label, value in (("value", p.init), ("lower", p.lower), ("upper", p.upper)):
+        check_value(p, value, f"{loc}: {label}")
     if p.lower > p.upper:
         raise FricjaxError(f"{loc}: lower bound {p.lower:g} > upper bound {p.upper:g}")
     if not (p.lower <= p.init <= p.upper):

@@ -313,8 +313,10 @@ def build_problem(
     check_axis(rec, config)
     if not config.mass_in_spec:
         m = require_mass(rec)
+        # bounds = the value: the recording's mass is a measurement, not a search box, so
+        # no box of the config can be blamed for it
         mass = dataclasses.replace(MASS, unit=axis_unit(MASS.unit, config.axis))
-        spec = spec.extended([mass.fixed_at(m)])
+        spec = spec.extended([dataclasses.replace(mass, lower=m, upper=m, init=m, free=False)])
     checksum = rec.sha256()
     rec = bind_input(rec, config.model)
     # u and F are filtered like m·a ([preprocess].filter_input); F is handed on as u when

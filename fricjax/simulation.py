@@ -153,7 +153,7 @@ def simulate_against(
             f"{where(src, '/r')}: missing (closed-loop simulation with a controller needs "
             "the reference position)"
         )
-    problem = _problem(rec, cfg, params)
+    problem = _problem(rec, cfg, params, source)
     check_known(params, problem.spec.names, source)
     p = _named(problem, params, source)
     trim = problem.preprocess.trim if problem.preprocess is not None else 0

@@ -53,6 +53,8 @@ from fricjax.io.atomic import check_outputs, write_text_atomic
 from fricjax.limits import check_decimation
 from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
 from fricjax.model.simulate import simulate
+from fricjax.model.system import MASS
+from fricjax.params import check_value
 from fricjax.problem import Problem, bind_input, build_problem, needs_input
 from fricjax.refine import RefineSettings, refine, uncertainty
 
@@ -131,7 +133,8 @@ def _named(problem: Problem, params: Mapping[str, float], source: str) -> dict[s
     out = {}
     for p in problem.spec.params:
         if p.name in params:
-            out[p.name] = jnp.asarray(float(params[p.name]), dtype=jnp.float64)
+            value = check_value(p, params[p.name], where(source, p.name))
+            out[p.name] = jnp.asarray(value, dtype=jnp.float64)
         elif p.free:
             raise FricjaxError(f"{where(source, p.name)}: missing (free parameter of the model)")
         else:
@@ -139,9 +142,13 @@ def _named(problem: Problem, params: Mapping[str, float], source: str) -> dict[s
     return out
 
 
-def _problem(rec: Recording, cfg: Config, params: Mapping[str, float]) -> Problem:
+def _problem(
+    rec: Recording, cfg: Config, params: Mapping[str, float], source: str = "params"
+) -> Problem:
     if not cfg.mass_in_spec and rec.mass is None and "mass" in params:
-        rec = replace(rec, mass=float(params["mass"]))
+        # the mass comes from the parameters, so a bad one is blamed on them
+        mass = check_value(MASS, params["mass"], where(source, "mass"))
+        rec = replace(rec, mass=mass)
     return build_problem(rec, cfg)
 
 
@@ -162,7 +169,7 @@ def equation_error(
 ) -> EquationMetrics:
     """IDIM equation-error metrics of ``params`` on ``rec`` (module docstring)."""
     q = check_factor(decimate_by, "validate")
-    problem = _problem(rec, cfg, params)
+    problem = _problem(rec, cfg, params, source)
     check_decimation(q, problem.n, "validate")
     p = _named(problem, params, source)
     sig = problem.signals
@@ -202,7 +209,7 @@ def simulation_error(
     Closed loop when ``rec`` has a reference ``/r`` and ``controller`` is given; the body
     starts at the first recorded position with the first-difference velocity.
     """
-    problem = _problem(rec, cfg, params)
+    problem = _problem(rec, cfg, params, source)
     p = _named(problem, params, source)
     closed, xs, vs, acc, us = simulate_model(rec, problem, p, controller, substeps=substeps)
     trim = problem.preprocess.trim if problem.preprocess is not None else 0
@@ -325,7 +332,7 @@ def open_loop_rmse(
         raise FricjaxError(
             f"{where(rec.name or None, '/u')}: an open-loop simulation needs a recorded input"
         )
-    problem = _problem(rec, cfg, params)
+    problem = _problem(rec, cfg, params, source)
     p = _named(problem, params, source)
     x0, v0 = initial_state(rec.t, rec.x, n_init)
     traj = simulate(

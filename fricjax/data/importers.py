@@ -22,8 +22,15 @@ from pathlib import Path
 import numpy as np
 import scipy.io
 from jaxtyping import Float
+from scipy.io.matlab import MatReadError
 
-from fricjax.data.recording import MAX_STEP_JITTER, Recording, _validate
+from fricjax.data.recording import (
+    MASS_FLAG,
+    MAX_STEP_JITTER,
+    Recording,
+    _check_mass,
+    _validate,
+)
 from fricjax.errors import FricjaxError, where
 
 __all__ = ["EMPS_MAP", "MAX_GRID_DEVIATION", "import_mat"]
@@ -80,11 +87,15 @@ def import_mat(
     for key in ("t", "x"):
         if key not in mapping:
             raise FricjaxError(f"{where(path, f'mapping {key!r}')}: missing (t and x are needed)")
+    if mass is not None:  # a MAT file holds no mass: a bad one is the caller's flag
+        mass = _check_mass(mass, MASS_FLAG)
     if not path.is_file():
         raise FricjaxError(f"{where(path)}: no such file")
+    if path.stat().st_size == 0:
+        raise FricjaxError(f"{where(path)}: empty file (0 bytes), not a MAT file")
     try:
         data = scipy.io.loadmat(path)
-    except (ValueError, NotImplementedError, OSError, TypeError) as exc:
+    except (ValueError, NotImplementedError, OSError, TypeError, MatReadError) as exc:
         raise FricjaxError(
             f"{where(path)}: cannot read as a MAT file v4-v7.2 ({exc}); "
             "v7.3 files are HDF5: save with -v7 or convert"

@@ -139,7 +139,7 @@ class PreprocessSettings:
                 f"{self._key('filter_input')}: must be true or false, got {self.filter_input!r}"
             )
         object.__setattr__(self, "filter_input", bool(self.filter_input))
-        if self.stencil not in (2, 4):
+        if not _is_int(self.stencil) or self.stencil not in (2, 4):
             raise FricjaxError(f"{self._key('stencil')}: must be 2 or 4, got {self.stencil!r}")
         window = self.savgol_window
         if not _is_int(window) or window % 2 != 1:
@@ -179,9 +179,17 @@ class PreprocessSettings:
                 )
         return cls(**dict(d), source=source)
 
-    def check(self, sample_rate_hz: float, n: int) -> None:
+    def check(self, sample_rate_hz: float, n: int, *, recording: str | None = None) -> None:
         """Raise :class:`FricjaxError` if these settings cannot process ``n`` samples at
-        ``sample_rate_hz`` [Hz] (cutoff above Nyquist, window longer than the record, ...)."""
+        ``sample_rate_hz`` [Hz] (cutoff above Nyquist, window longer than the record, ...).
+
+        With ``recording`` (the file the samples came from) a record too short for the
+        settings is blamed on the recording, naming the fewest samples they need, and a
+        cutoff below one period over the record (``cutoff_hz < fs/(n − 1)``, a filter whose
+        response outlasts the data) is refused.
+        """
+        if recording is not None:
+            self._check_record(sample_rate_hz, n, recording)
         if self.method == "butterworth":
             nyquist = sample_rate_hz / 2.0
             if self.cutoff_hz >= nyquist:
@@ -198,6 +206,33 @@ class PreprocessSettings:
             raise FricjaxError(
                 f"{self._key('trim')}: trimming {self.trim} samples at each end leaves "
                 f"{n - 2 * self.trim} of the {n} samples, need at least {_MIN_SAMPLES}"
+            )
+
+    def min_samples(self) -> int:
+        """Fewest samples these settings can process: ``2·trim + 3`` (np.gradient needs 3
+        after trimming), and the Savitzky–Golay window."""
+        need = 2 * self.trim + _MIN_SAMPLES
+        return max(need, self.savgol_window) if self.method == "savgol" else need
+
+    def _check_record(self, sample_rate_hz: float, n: int, recording: str) -> None:
+        need = self.min_samples()
+        if n < need:
+            why = (
+                f"trim = {self.trim} at each end, then {_MIN_SAMPLES} samples to differentiate"
+                if need == 2 * self.trim + _MIN_SAMPLES
+                else f"savgol_window = {self.savgol_window}"
+            )
+            raise FricjaxError(
+                f"{where(recording, '/t')}: {n} samples is too short for the preprocessing "
+                f"({where(self.source or None, f'[{_TABLE}]')}: {why}), which needs at least "
+                f"{need} samples"
+            )
+        duration = (n - 1) / sample_rate_hz
+        if self.method == "butterworth" and self.cutoff_hz * duration < 1.0:
+            raise FricjaxError(
+                f"{self._key('cutoff_hz')}: {self.cutoff_hz:g} Hz is less than one period "
+                f"over the {duration:.6g} s of {recording}; the low-pass needs at least "
+                f"{1.0 / duration:.3g} Hz"
             )
 
     def _key(self, name: str) -> str:
@@ -257,7 +292,7 @@ def derivatives(
             f"{where(source, '/t')}: {n} samples, need at least {_MIN_SAMPLES} to differentiate"
         )
     dt = _uniform_step(t_arr, source)
-    settings.check(1.0 / dt, n)
+    settings.check(1.0 / dt, n, recording=source)
     if settings.method == "butterworth":
         v, a = _butterworth(x_arr, dt, settings)
     else:

@@ -67,11 +67,21 @@ __all__ = [
 #: that still counts as a uniform time base (conventions: "relative jitter < 1e-6").
 MAX_STEP_JITTER = 1e-6
 
+#: Smallest mean time step [s] taken as a time base (1 ns: 1 GHz sampling); below it the
+#: time is in the wrong unit, and filter lengths in samples (∝ 1/dt) no longer fit memory.
+MIN_STEP = 1e-9
+
+#: Largest size of a force-like quantity (a, F, u) times √n: its squares must sum to a
+#: finite float64 (max ≈ 1.8e308), with room for the mass and the model's terms.
+MAX_MAGNITUDE = 1e150
+
 _SIGNALS = ("t", "x", "u", "F", "r")
 _HDF5_SUFFIXES = (".h5", ".hdf5")
 _CSV_SUFFIX = ".csv"
 _TEXT_ATTRS = ("name", "source", "u_unit", "notes", "axis")
 _MASS_ATTR = "attr 'mass'"
+#: How messages name a mass given by the caller (``--mass`` on the command line).
+MASS_FLAG = "--mass"
 
 # SI unit each dataset must carry if it says anything about its unit, and factors that
 # turn common wrong units into it (for the hint in the error message).
@@ -225,6 +235,8 @@ def validate(rec: Recording, *, min_samples: int = 16) -> Recording:
 
     Checks, in order: every signal is real-valued and 1-D; x, u, F have the length of t;
     n ≥ ``min_samples``; no NaN or inf (first index reported); t strictly increasing;
+    t in seconds, not sample indices (integers in steps of 1) nor a step below
+    :data:`MIN_STEP`; no signal so large that its squares overflow (:data:`MAX_MAGNITUDE`);
     uniform step, max_k |Δt_k − dt| / dt < 1e-6 with dt the mean step; mass, if given,
     a positive finite number of kg.
 
@@ -275,6 +287,17 @@ def _validate(
             f"{name('t')}: not strictly increasing at index {i} "
             f"(t[{i - 1}] = {float(t[i - 1])!r} s, t[{i}] = {float(t[i])!r} s)"
         )
+    if n > 1 and float(t[1] - t[0]) == 1.0 and np.all(t == np.round(t)):
+        raise FricjaxError(
+            f"{name('t')}: t looks like sample indices, not seconds (integers from "
+            f"{float(t[0]):g} in steps of 1): store time in seconds, t_k = t_0 + k*dt"
+        )
+    if n > 1 and float(t[-1] - t[0]) / (n - 1) < MIN_STEP:
+        raise FricjaxError(
+            f"{name('t')}: time step {float(t[-1] - t[0]) / (n - 1):.3g} s is below "
+            f"{MIN_STEP:g} s (a sample rate above {1 / MIN_STEP:g} Hz): wrong units of t?"
+        )
+    _check_scale(rec, name)
     if check_uniform and n > 2:
         dt = (t[-1] - t[0]) / (n - 1)
         dev = np.abs(step - dt) / dt
@@ -293,6 +316,29 @@ def _validate(
             f"{where(rec.path, 'attr axis')}: must be 'linear' or 'rotary', got {rec.axis!r}"
         )
     return rec
+
+
+def _check_scale(rec: Recording, name: Any) -> None:
+    """Refuse signals whose size overflows float64 downstream: the cost sums squares of
+    forces m·a with a ~ Δ²x/dt² (at most 4·max|x|/dt²), so max|x|·4/dt² (and max|F|, max|u|)
+    must stay below :data:`MAX_MAGNITUDE` ≈ √(float64 max / n)."""
+    n = rec.n
+    if n < 2:
+        return
+    dt = rec.dt
+    for key in _SIGNALS:
+        arr = getattr(rec, key)
+        if arr is None or key == "t":
+            continue
+        size = float(np.max(np.abs(arr)))
+        moving = key in ("x", "r")
+        scale = 4.0 * size / dt**2 if moving else size
+        if scale * math.sqrt(n) > MAX_MAGNITUDE:
+            what = f" give accelerations up to ~{scale:.3g} m/s^2 (4*max|x|/dt^2)," * moving
+            raise FricjaxError(
+                f"{name(key)}: values up to {size:.3g}{what} too large to square and sum "
+                f"in float64 (limit {MAX_MAGNITUDE:g}/sqrt(n)): wrong units?"
+            )
 
 
 def _check_mass(mass: Any, label: str) -> float:
@@ -327,7 +373,7 @@ def read_recording(path: str | Path, *, mass: float | None = None) -> Recording:
     Args:
         path: the file; its suffix picks the format.
         mass: moving mass, kg; overrides the HDF5 attribute (which is then not read) and
-            is the only source of mass for CSV files.
+            is the only source of mass for CSV files. A bad one is blamed on ``--mass``.
 
     Never opens the ``/truth`` group.
 
@@ -343,6 +389,9 @@ def read_recording(path: str | Path, *, mass: float | None = None) -> Recording:
         )
     if not path.is_file():
         raise FricjaxError(f"{where(path)}: no such file")
+    if mass is not None:
+        # checked as the flag it came from: the file's own mass attribute is not read
+        mass = _check_mass(mass, MASS_FLAG)
     rec = _read_csv(path) if suffix == _CSV_SUFFIX else _read_hdf5(path, read_mass=mass is None)
     if mass is not None:
         rec = replace(rec, mass=mass)
@@ -364,15 +413,36 @@ def _read_hdf5(path: Path, *, read_mass: bool) -> Recording:
                     raise FricjaxError(f"{where(path, '/' + key)}: missing dataset")
                 signals[key] = None
                 continue
-            ds = f[key]
+            try:
+                ds = f[key]
+            except (KeyError, OSError):
+                link = f.get(key, getlink=True)
+                target = (
+                    f"external link to {link.filename}:{link.path}"
+                    if isinstance(link, h5py.ExternalLink)
+                    else f"soft link to {link.path}"
+                    if isinstance(link, h5py.SoftLink)
+                    else "object"
+                )
+                raise FricjaxError(
+                    f"{where(path, '/' + key)}: cannot be opened ({target} that does not resolve)"
+                ) from None
             if not isinstance(ds, h5py.Dataset):
                 raise FricjaxError(f"{where(path, '/' + key)}: is a group, expected a dataset")
             if ds.dtype.kind not in "fiu":
                 raise FricjaxError(
                     f"{where(path, '/' + key)}: wrong dtype {ds.dtype} (expected float64 numbers)"
                 )
+            if key == "t" and ds.dtype.kind in "iu":
+                raise FricjaxError(
+                    f"{where(path, '/t')}: integer dtype {ds.dtype}: t looks like sample "
+                    "indices, not seconds (store float64 seconds, t_k = t_0 + k*dt)"
+                )
             _check_unit(path, key, ds, axis)
-            signals[key] = ds[()]
+            try:
+                signals[key] = ds[()]
+            except (OSError, ValueError, TypeError) as exc:
+                raise FricjaxError(f"{where(path, '/' + key)}: unreadable data ({exc})") from None
         attrs = f.attrs
         text = {k: _text_attr(path, attrs, k) for k in _TEXT_ATTRS}
         mass = _mass_attr(path, attrs) if read_mass else None
@@ -430,7 +500,8 @@ def _mass_attr(path: Path, attrs: h5py.AttributeManager) -> float | None:
 
 def _read_csv(path: Path) -> Recording:
     try:
-        text = path.read_text(encoding="utf-8")
+        # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise FricjaxError(f"{where(path)}: cannot read as UTF-8 text ({exc})") from None
     lines = text.splitlines()
@@ -438,6 +509,14 @@ def _read_csv(path: Path) -> Recording:
     if header_at is None:
         raise FricjaxError(
             f"{where(path, 'header')}: empty file, expected a header t,x[,u][,F][,r]"
+        )
+    if ";" in lines[header_at]:
+        # Excel in a decimal-comma locale: ';' between fields, ',' in numbers. Refused, not
+        # guessed: "1,234" could be 1.234 or 1234, and a wrong guess scales x silently.
+        raise FricjaxError(
+            f"{where(path, 'header')}: fields separated by ';' (a decimal-comma export); "
+            "fricjax reads ',' between fields and '.' as decimal point: export with the "
+            "decimal point '.' (or convert: sed -e 's/,/./g' -e 's/;/,/g')"
         )
     columns = [c.strip() for c in lines[header_at].split(",")]
     for c in columns:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -167,59 +168,196 @@ def write_results(results: ResultsFile, path: str | Path) -> Path:
 
 def _attr(value: Any) -> Any:
     if isinstance(value, bytes):
-        return value.decode()
+        return value.decode("utf-8", errors="replace")
     if isinstance(value, np.generic):
         return value.item()
     return value
 
 
+#: Run attributes that must be numbers when present (``show`` formats them as such).
+_NUMBER_ATTRS = ("alpha", "seed", "n_chains", "wall_time", "levels", "n_evals", "t0")
+#: Parameter datasets that must be finite (the values and their box) and those that hold
+#: NaN where the uncertainty was not computed.
+_BOX = ("value", "lower", "upper")
+_SIGMA = ("std", "rel_std")
+#: Run attributes the best-run choice and the fit figures read: finite numbers, required.
+_COST_ATTRS = ("cost", "ems", "cost_search", "ems_search")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+class _RunReader:
+    """Reads one ``/runs/<label>`` group, refusing (one line naming file and dataset) any
+    entry of the wrong kind, dtype, shape or value: a results file is user input too."""
+
+    def __init__(self, path: Path, group: h5py.Group, at: str) -> None:
+        self.path, self.group, self.at = path, group, at
+        self.d = 0
+
+    def fail(self, key: str, what: str) -> FricjaxError:
+        return FricjaxError(f"{where(self.path, f'{self.at}/{key}' if key else self.at)}: {what}")
+
+    def dataset(self, key: str) -> h5py.Dataset:
+        try:
+            obj = self.group.get(key)
+        except (KeyError, OSError):
+            raise self.fail(key, "cannot be opened (a link that does not resolve)") from None
+        if obj is None:
+            raise self.fail(key, "missing")
+        if not isinstance(obj, h5py.Dataset):
+            raise self.fail(key, "is a group, expected a dataset")
+        return obj
+
+    def strings(self, key: str, length: int | None = None) -> list[str]:
+        ds = self.dataset(key)
+        if ds.dtype.kind not in "OSU" or ds.ndim != 1:
+            raise self.fail(key, f"expected a 1-D array of strings, got {ds.dtype} {ds.shape}")
+        out = _strs(ds)
+        if length is not None and len(out) != length:
+            raise self.fail(key, f"has {len(out)} entries, params/names has {length}")
+        return out
+
+    def floats(
+        self, key: str, shape: tuple[int | None, ...], *, finite: bool, kinds: str = "fiu"
+    ) -> np.ndarray:
+        ds = self.dataset(key)
+        if ds.dtype.kind not in kinds:
+            raise self.fail(key, f"wrong dtype {ds.dtype} (expected numbers)")
+        got = ds.shape
+        if len(got) != len(shape) or any(
+            w is not None and g != w for g, w in zip(got, shape, strict=True)
+        ):
+            want = ", ".join("any" if w is None else str(w) for w in shape)
+            why = f" for the {self.d} names in params/names" if self.d in shape else ""
+            raise self.fail(key, f"has shape {got}, expected ({want}){why}")
+        arr = np.asarray(ds[()], dtype=np.float64 if kinds != "iu" else np.int64)
+        if finite and not np.isfinite(arr).all():
+            i = int(np.argmax(~np.isfinite(arr.reshape(-1))))
+            raise self.fail(key, f"holds {arr.reshape(-1)[i]} at index {i}, expected finite")
+        return arr
+
+    def number_attr(self, key: str, *, required: bool) -> float | None:
+        if key not in self.group.attrs:
+            if required:
+                raise self.fail("", f"attr {key!r} missing")
+            return None
+        value = _attr(self.group.attrs[key])
+        if not _is_number(value) or (required and not math.isfinite(value)):
+            kind = "a finite number" if required else "a number"
+            raise self.fail("", f"attr {key!r} must be {kind}, got {value!r}")
+        return float(value)
+
+
+def _read_run(path: Path, label: str, g: Any) -> RunResult:
+    at = f"/runs/{label}"
+    if not isinstance(g, h5py.Group):
+        raise FricjaxError(f"{where(path, at)}: is a dataset, expected a group (one per run)")
+    r = _RunReader(path, g, at)
+    names = r.strings("params/names")
+    d = r.d = len(names)
+    if len(set(names)) != d:
+        dup = next(n for n in names if names.count(n) > 1)
+        raise r.fail("params/names", f"{dup!r} appears more than once")
+    # the parameter table first: a wrong d shows up as the table's fault, not a trace's
+    units, flags = r.strings("params/units", d), r.strings("params/flags", d)
+    table = {key: r.floats(f"params/{key}", (d,), finite=True) for key in _BOX}
+    table.update({key: r.floats(f"params/{key}", (d,), finite=False) for key in _SIGMA})
+    corr = r.floats("params/corr", (d, d), finite=False)
+    fixed_group = g.get("fixed")
+    if not isinstance(fixed_group, h5py.Group):
+        raise r.fail("fixed", "missing group of fixed parameters (attrs name -> value)")
+    fixed = {}
+    for key, raw in fixed_group.attrs.items():
+        value = _attr(raw)
+        if not _is_number(value) or not math.isfinite(value):
+            raise r.fail(f"fixed attr {key!r}", f"must be a finite number, got {value!r}")
+        if key in names:
+            raise r.fail(f"fixed attr {key!r}", "is also a free parameter in params/names")
+        fixed[key] = float(value)
+    method = _attr(g.attrs.get("method"))
+    if not isinstance(method, str):
+        raise r.fail("", f"attr 'method' must be a string, got {method!r}")
+    costs = {key: r.number_attr(key, required=True) for key in _COST_ATTRS}
+    for key in _NUMBER_ATTRS:
+        r.number_attr(key, required=False)
+    run_attrs = {k: _attr(v) for k, v in g.attrs.items() if k not in ("method", *_COST_ATTRS)}
+    chain_x = r.floats("chains/x", (None, d), finite=False)
+    n_levels = None
+    traces = {}
+    for key in TRACE_KEYS:
+        per_chain = key in ("best_cost", "current_cost", "acceptance")
+        shape = (n_levels, chain_x.shape[0]) if per_chain else (n_levels,)
+        traces[key] = r.floats(f"traces/{key}", shape, finite=False)
+        n_levels = traces[key].shape[0]
+    minima_x = r.floats("minima/x", (None, d), finite=False)
+    m = minima_x.shape[0]
+    return RunResult(
+        label=label,
+        method=method,
+        names=names,
+        units=units,
+        value=table["value"],
+        lower=table["lower"],
+        upper=table["upper"],
+        fixed=fixed,
+        cost=costs["cost"],
+        ems=costs["ems"],
+        cost_search=costs["cost_search"],
+        ems_search=costs["ems_search"],
+        std=table["std"],
+        rel_std=table["rel_std"],
+        corr=corr,
+        flags=flags,
+        chain_x=chain_x,
+        chain_cost=r.floats("chains/cost", (chain_x.shape[0],), finite=False),
+        traces=traces,
+        minima_x=minima_x,
+        minima_cost=r.floats("minima/cost", (m,), finite=False),
+        minima_count=r.floats("minima/count", (m,), finite=False, kinds="iu"),
+        attrs=run_attrs,
+    )
+
+
 def _strs(ds: h5py.Dataset) -> list[str]:
-    return [s.decode() if isinstance(s, bytes) else str(s) for s in ds[()]]
+    return [s.decode("utf-8", errors="replace") if isinstance(s, bytes) else str(s) for s in ds[()]]
 
 
 def read_results(path: str | Path) -> ResultsFile:
-    """Read a results file; a file of another kind is refused with one line."""
+    """Read a results file, checking it against the layout of the module docstring.
+
+    A file of another kind, a missing, mistyped or misshapen entry (``params/value``
+    shorter than ``params/names``, strings where numbers belong, ``/runs`` empty or a
+    dataset), or a NaN/inf where a value is needed (parameter values and bounds, fixed
+    parameters, costs) is refused with one line naming the file and the entry.
+    """
     path = Path(path)
     if not path.exists():
         raise FricjaxError(f"{where(path)}: results file not found")
     try:
-        with h5py.File(path, "r") as f:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise FricjaxError(f"{where(path)}: not a readable HDF5 results file ({err})") from None
+    try:
+        with f:
             if _attr(f.attrs.get("format", "")) != FORMAT:
                 raise FricjaxError(
                     f"{where(path, 'attr format')}: not a fricjax results file (expected {FORMAT})"
                 )
             attrs = {k: _attr(v) for k, v in f.attrs.items()}
-            runs = []
-            for label, g in f["runs"].items():
-                p = g["params"]
-                run_attrs = {k: _attr(v) for k, v in g.attrs.items()}
-                runs.append(
-                    RunResult(
-                        label=label,
-                        method=str(run_attrs.pop("method")),
-                        names=_strs(p["names"]),
-                        units=_strs(p["units"]),
-                        value=p["value"][()],
-                        lower=p["lower"][()],
-                        upper=p["upper"][()],
-                        fixed={k: float(v) for k, v in g["fixed"].attrs.items()},
-                        cost=float(run_attrs.pop("cost")),
-                        ems=float(run_attrs.pop("ems")),
-                        cost_search=float(run_attrs.pop("cost_search")),
-                        ems_search=float(run_attrs.pop("ems_search")),
-                        std=p["std"][()],
-                        rel_std=p["rel_std"][()],
-                        corr=p["corr"][()],
-                        flags=_strs(p["flags"]),
-                        chain_x=g["chains/x"][()],
-                        chain_cost=g["chains/cost"][()],
-                        traces={k: g["traces"][k][()] for k in TRACE_KEYS},
-                        minima_x=g["minima/x"][()],
-                        minima_cost=g["minima/cost"][()],
-                        minima_count=g["minima/count"][()],
-                        attrs=run_attrs,
-                    )
+            group = f.get("runs")
+            if group is None:
+                raise FricjaxError(f"{where(path, '/runs')}: missing group of runs")
+            if not isinstance(group, h5py.Group):
+                raise FricjaxError(
+                    f"{where(path, '/runs')}: is a dataset, expected a group (one per run)"
                 )
+            if len(group) == 0:
+                raise FricjaxError(f"{where(path, '/runs')}: holds no run")
+            runs = [_read_run(path, label, group[label]) for label in group]
     except (OSError, KeyError) as err:
         raise FricjaxError(f"{where(path)}: unreadable results file ({err})") from None
     return ResultsFile(runs=runs, attrs=attrs)

@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.model.term import Basis, Groups, Signals, Term, grid_layout
-from fricjax.params import Named, Param
+from fricjax.params import POSITIVE, Named, Param
 
 
 def phasor(
@@ -84,6 +84,13 @@ class HarmonicDrive(Term):
     name: ClassVar[str] = "harmonic_drive"
     role: ClassVar = "drive"
 
+    def __post_init__(self) -> None:
+        # an option of the config's [model.harmonic_drive] table: a float or a string here
+        # would only fail later, deep in building the parameter names
+        h = self.harmonics
+        if not isinstance(h, int | np.integer) or isinstance(h, bool) or h < 1:
+            raise ValueError(f"harmonics: must be an integer >= 1, got {h!r}")
+
     def parameters(self) -> tuple[Param, ...]:
         amps = tuple(
             Param(f"Fp_{i}", "N", 0.0, 1e4, 0.0, null=0.0) for i in range(1, self.harmonics + 1)
@@ -93,7 +100,7 @@ class HarmonicDrive(Term):
         )
         return (
             Param("F0", "N", -1e4, 1e4, 0.0, null=0.0),
-            Param("omega", "rad/s", 1.0, 1e3, 2 * math.pi * 5),
+            Param("omega", "rad/s", 1.0, 1e3, 2 * math.pi * 5, domain=POSITIVE),
             *amps,
             *phases,
         )

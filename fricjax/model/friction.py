@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from fricjax.model.term import Basis, Groups, Signals, Term, sgn
-from fricjax.params import Named, Param
+from fricjax.params import POSITIVE, Named, Param
 
 
 def stribeck_curve(
@@ -55,8 +55,8 @@ class StribeckFriction(Term):
         return (
             Param("Fc", "N", 0.0, 1e4, 0.0, null=0.0),
             Param("Fs", "N", 0.0, 1e4, 0.0, null=0.0),
-            Param("vs", "m/s", 1e-4, 10.0, 0.1),
-            Param("delta", "1", 0.2, 5.0, 1.0, free=False),
+            Param("vs", "m/s", 1e-4, 10.0, 0.1, domain=POSITIVE),
+            Param("delta", "1", 0.2, 5.0, 1.0, free=False, domain=POSITIVE),
             Param("Fv", "N*s/m", 0.0, 1e5, 0.0, null=0.0),
         )
 

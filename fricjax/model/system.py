@@ -25,9 +25,9 @@ from jaxtyping import Array, Bool, Float
 
 from fricjax.errors import FricjaxError
 from fricjax.model.term import Basis, Groups, Signals, Term, no_basis
-from fricjax.params import Named, Param
+from fricjax.params import POSITIVE, Named, Param
 
-MASS = Param("mass", "kg", 1e-6, 1e6, 1.0, free=False)
+MASS = Param("mass", "kg", 1e-6, 1e6, 1.0, free=False, domain=POSITIVE)
 
 
 @dataclass(frozen=True)

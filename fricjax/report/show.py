@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 import numpy as np
 
+from fricjax.config import parse_config
+from fricjax.errors import FricjaxError, where
 from fricjax.io.results import ResultsFile, RunResult, read_results
+from fricjax.model.system import MASS
+from fricjax.params import check_value
 from fricjax.report.tables import SEED_GROUPS, fmt, format_table, seed_tables
 from fricjax.units import AxisUnits, axis_units
 
@@ -205,9 +210,25 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
     return "\n\n".join(parts)
 
 
+def _check_domains(path: str | Path, results: ResultsFile) -> None:
+    """Refuse a run value outside its parameter's physical domain (a mass of −5 kg), the
+    model taken from the config stored in the file; without a usable one, values are
+    shown as stored."""
+    try:
+        cfg = parse_config(tomllib.loads(str(results.attrs.get("config", ""))))
+    except (tomllib.TOMLDecodeError, FricjaxError):
+        return
+    spec = cfg.spec if cfg.mass_in_spec else cfg.spec.extended([MASS])
+    for run in results.runs:
+        for name, value in run.params.items():
+            if name in spec:
+                check_value(spec[name], value, where(path, f"/runs/{run.label}: {name}"))
+
+
 def show_results(path: str | Path, *, recording: str | Path | None = None) -> str:
     """Seed Tables 1–4, one column per run, truth/error columns when the recording is a twin."""
     results: ResultsFile = read_results(path)
+    _check_domains(path, results)
     rec = recording or results.attrs.get("recording_path") or None
     truth = _truth_for(rec)
     runs = results.runs
