@@ -87,7 +87,7 @@ def recording_scale(rec: Recording, drive: str, settings: PreprocessSettings) ->
     gain = None
     if signal == "F":
         force, force_from = max(inertial, float(np.max(np.abs(d.F)))), "max |F|, m·max|a|"
-    elif signal == "u":
+    elif signal == "u" and d.u is not None:
         cols = np.stack([d.u, -np.ones_like(d.v), -np.sign(d.v), -d.v], axis=1)
         gain = float(np.linalg.lstsq(cols, m * d.a, rcond=None)[0][0])
         force = max(inertial, abs(gain) * float(np.max(np.abs(d.u))))
