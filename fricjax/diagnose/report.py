@@ -711,7 +711,7 @@ def simulation_blocks(diag: Diagnosis) -> list[Block]:
 
 
 def report_blocks(diag: Diagnosis, figures: Mapping[str, Path]) -> list[Block]:
-    """The whole report, section by section (see docs/diagnosis-report.md)."""
+    """The whole report, section by section (see docs/reading-a-report.md)."""
     blocks: list[Block] = [
         Heading(f"Diagnosis of `{diag.recording}`", 1),
         Para(f"Base model: `{diag.base_model}`. Verdict: {_verdict(diag)}"),
