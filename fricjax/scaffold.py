@@ -151,7 +151,8 @@ def scaffold_config(
         )
     settings = _preprocess(rec)
     scale = recording_scale(rec, drive, settings)
-    text = _render(rec, units, settings, scale, drive, terms, harmonics)
+    mass_from = "from --mass" if mass is not None else "from the recording"
+    text = _render(rec, units, settings, scale, drive, terms, harmonics, mass_from)
     parse_config(tomllib.loads(text), source="init-config")  # what is written is accepted
     return text
 
@@ -176,6 +177,7 @@ def _render(
     drive: str,
     friction: list[str],
     harmonics: int,
+    mass_from: str,
 ) -> str:
     def unit(linear: str) -> str:
         return axis_unit(linear, u)
@@ -259,7 +261,7 @@ def _render(
         f"# Starting config for {name}, written by `fricjax init-config` from the recording's",
         "# own scale (after the preprocessing below): every bound says where it came from.",
         f"# {u.kind} axis: {u.position}, {u.velocity}, {u.force}, {u.inertia}; "
-        f"{u.inertia_word} {_g(float(rec.mass))} {u.inertia} from the recording.",
+        f"{u.inertia_word} {_g(float(rec.mass))} {u.inertia} {mass_from}.",
         f"# Record: {rec.n} samples at {_g(1.0 / rec.dt)} Hz ({_g(rec.duration)} s); "
         f"max |v| = {_g(s.v_max)} {V}; m·max|a| = {_g(s.inertial)} {F}.",
     ]
