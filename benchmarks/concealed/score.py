@@ -105,9 +105,9 @@ def run_case(
     folder: Path,
     timeout: float,
     context: dict[str, Any],
-    time_limit: float,
+    time_limit: float | None = None,
 ) -> dict[str, Any]:
-    """``fricjax diagnose RECORDING --config CONFIG --out FOLDER --time-limit T`` in a new
+    """``fricjax diagnose RECORDING --config CONFIG --out FOLDER [--time-limit T]`` in a new
     process group, killed (the whole group) after ``timeout`` s; writes and returns
     ``FOLDER/run.json``."""
     from fricjax.io.atomic import write_text_atomic
@@ -125,8 +125,7 @@ def run_case(
         str(config),
         "--out",
         str(folder),
-        "--time-limit",
-        f"{time_limit:g}",
+        *(["--time-limit", f"{time_limit:g}"] if time_limit else []),
     ]
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     load = os.getloadavg()
