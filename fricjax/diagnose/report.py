@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
+from fricjax.data.noise import estimate_noise
 from fricjax.data.preprocess import noise_gains
 from fricjax.diagnose.run import CV_FOLDS, CV_FOLDS_KEY, FROZEN_KEY, SPLIT_DEFERS, SPLIT_FROZEN
-from fricjax.diagnose.select import difference_sigma
 from fricjax.io.atomic import write_text_atomic
 from fricjax.params import ParamSpec
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
@@ -415,11 +415,13 @@ def noise_blocks(diag: Diagnosis) -> list[Block]:
     """What the record allows: the noise model, its scale with its unit, the near-rest band
     in m/s and its share of the samples."""
     sel, pb = diag.selection, diag.problem
-    own, _ = difference_sigma(np.asarray(pb.x))
+    # the same model-free estimate `fricjax inspect` reports (fricjax.data.noise)
+    own_noise = estimate_noise(np.asarray(pb.x))
+    own = own_noise.sigma
     dt = float((pb.t[-1] - pb.t[0]) / (pb.n - 1))
     rows = [
         ("samples", f"{pb.n} over {pb.t[-1] - pb.t[0]:.4g} s ({1 / dt:.4g} Hz)"),
-        ("σ_x of the record itself (third difference of x, model-free)", length(own)),
+        ("σ_x of the record itself (its own high band, model-free)", own_noise.describe("m")),
     ]
     if sel.whitener.spectral:
         text = (
@@ -445,7 +447,7 @@ def noise_blocks(diag: Diagnosis) -> list[Block]:
             text = (
                 "Noise model: **displacement noise** on x, σ̂_x = "
                 f"{length(fit_sigma)} from the base fit's whitened residual (used by the tests and "
-                f"the BIC); the record's own third difference gives {length(own)}."
+                f"the BIC); the record's own high band gives {length(own)}."
             )
         if own > 0 and fit_sigma > 1.5 * own:
             text += (
