@@ -366,6 +366,63 @@ def identify_recording(
     return run, path
 
 
+def identify_recordings(
+    recordings: list[str | Path],
+    config: str | Path,
+    *,
+    overrides: dict[str, Any] | None = None,
+    out: str | Path | None = None,
+    mass: float | None = None,
+    on_level: Any = None,
+    on_member: Any = None,
+) -> tuple[Any, Path]:
+    """``fricjax identify REC1 REC2 ...``: one recording is :func:`identify_recording`,
+    unchanged; several are fitted jointly (:mod:`fricjax.joint`: shared parameters and the
+    config's ``[joint].per_recording`` ones, each recording weighted by its noise), and
+    the joint run written to one results file (``kind = "joint"``, atomic). Default
+    ``out``: ``STEM1_joint_METHOD_sSEED.results.h5`` beside the first recording."""
+    if len(recordings) == 1:
+        return identify_recording(
+            recordings[0], config, overrides=overrides, out=out, mass=mass, on_level=on_level
+        )
+    if not recordings:
+        raise FricjaxError("identify: give at least one recording")
+    import hashlib
+
+    from fricjax.identify import IdentifySettings
+    from fricjax.io.results import ResultsFile, provenance, write_results
+    from fricjax.joint import JointSettings, check_alike, identify_joint
+
+    cfg = load_config(config)
+    joint = JointSettings.from_config(cfg)
+    settings = IdentifySettings.from_tables(cfg.tables, source=cfg.source, overrides=overrides)
+    settings = dataclasses.replace(settings, fast_compile=True)
+    first = Path(recordings[0])
+    path = (
+        Path(out)
+        if out
+        else first.with_name(f"{first.stem}_joint_{settings.method}_s{settings.seed}.results.h5")
+    )
+    inputs: dict[str, str | Path | None] = {f"recording {r}": r for r in recordings}
+    check_outputs([path], {**inputs, "--config": cfg.source}, "--out")
+    recs = [read_recording(r, mass=mass) for r in recordings]
+    check_alike(recs, [str(r) for r in recordings])
+    problems = [build_problem(rec, cfg) for rec in recs]
+    run = identify_joint(problems, settings, joint, on_level=on_level, on_member=on_member)
+    run.attrs["axis"] = cfg.axis.kind
+    combined = hashlib.sha256("".join(p.checksum for p in problems).encode()).hexdigest()
+    attrs = provenance(
+        kind="joint",
+        recording_name=" + ".join(p.name for p in problems),
+        recording_path="",
+        recording_sha256=combined,
+        config_text=cfg.text,
+        config_path=cfg.source,
+    )
+    write_results(ResultsFile(runs=[run], attrs=attrs), path)
+    return run, path
+
+
 def sweep_recording(
     recording: str | Path,
     config: str | Path,

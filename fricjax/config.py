@@ -41,6 +41,7 @@ SECTIONS = (
     "refine",
     "diagnose",
     "output_error",
+    "joint",
 )
 PARAM_KEYS = ("unit", "lower", "upper", "init", "value", "free")
 
