@@ -168,7 +168,13 @@ def _progress(label: str):
 
 @app.command()
 def identify(
-    recording: RecArg,
+    recording: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Recording (.h5 layout v1 or .csv); several: one joint fit (shared "
+            "parameters, [joint].per_recording ones per recording)"
+        ),
+    ],
     config: DefaultConfigOpt = None,
     method: MethodOpt = None,
     chains: Annotated[int | None, typer.Option(help="Parallel chains (restarts)", min=1)] = None,
@@ -201,12 +207,17 @@ def identify(
     mass: MassOpt = None,
     quiet: Annotated[bool, typer.Option(help="No progress line")] = False,
 ) -> None:
-    """Identify the config's parameters on a recording (annealing chains + refiner)."""
-    from fricjax.api import config_or_default, enable_compilation_cache, identify_recording
+    """Identify the config's parameters on a recording (annealing chains + refiner); on
+    several recordings of one axis, jointly (docs/joint.md)."""
+    from fricjax.api import config_or_default, enable_compilation_cache, identify_recordings
     from fricjax.report.show import run_summary
 
-    config = config_or_default(recording, config)
-    _warn_scale(recording, config, mass)
+    recordings = recording
+    if len(recordings) > 1 and config is None:
+        raise FricjaxError("--config: missing; a joint fit of several recordings needs one")
+    config = config_or_default(recordings[0], config)
+    for rec in recordings:
+        _warn_scale(rec, config, mass)
     enable_compilation_cache()
 
     overrides = {
@@ -221,17 +232,22 @@ def identify(
         "separable": separable,
         "objective": objective,
     }
-    result, path = identify_recording(
-        recording,
+    def on_member(k: int, total: int, name: str) -> None:
+        typer.echo(f"own fit {k + 1}/{total}: {name}", err=True)
+
+    result, path = identify_recordings(
+        list(recordings),
         config,
         overrides=overrides,
         out=out,
         mass=mass,
         on_level=None if quiet else _progress(method or "search"),
+        on_member=None if quiet else on_member,
     )
     if not quiet:
         typer.echo("", err=True)
-    typer.echo(run_summary(result, recording=recording))
+    single = recordings[0] if len(recordings) == 1 else None
+    typer.echo(run_summary(result, recording=single))
     typer.echo(f"results: {path}")
     if result.attrs.get("interrupted"):
         kept = (

@@ -10,6 +10,7 @@ import numpy as np
 from fricjax.config import parse_config
 from fricjax.errors import FricjaxError, where
 from fricjax.io.results import ResultsFile, RunResult, read_results
+from fricjax.joint import is_joint, members_of, split_name
 from fricjax.model.system import MASS
 from fricjax.params import check_value
 from fricjax.report.tables import SEED_GROUPS, fmt, format_table, seed_tables
@@ -153,6 +154,17 @@ def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
     a = run.attrs
     u = run_units(run)
     sq = u.force_sq
+    if is_joint(run):
+        # Σ_k ‖r_k‖²/s_k²: dimensionless, ≈ 1 per residual entry when the weights are right
+        return [
+            ("objective", str(a.get("objective", ""))),
+            ("joint cost after search [1]", fmt(run.cost_search, 7)),
+            (
+                "joint cost after refine [1]",
+                fmt(run.cost, 7) if a.get("refined", True) else "not refined",
+            ),
+            ("joint cost per residual entry [1] (≈ 1)", fmt(run.ems, 5)),
+        ]
     if str(a.get("objective", "")).startswith("output error"):
         # The output-error cost is Σ((x_sim − x)/σ_x)² + defects: not in N², not an EMS.
         return [
@@ -169,6 +181,11 @@ def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
         ),
         (f"EMS [{sq}] (seed Table 4)", fmt(run.ems, 7)),
     ]
+
+
+def _cost_unit(run: RunResult) -> str:
+    """Unit of a run's cost: the force squared, or 1 for a joint run (Σ_k ‖r_k‖²/s_k²)."""
+    return "1" if is_joint(run) else run_units(run).force_sq
 
 
 def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
@@ -188,6 +205,8 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
         ]
     )
     parts = [head, parameter_table(run), determination(run)]
+    if is_joint(run):
+        parts.append(joint_section(run))
     if len(run.minima_cost):
         rows = [
             (str(i + 1), fmt(float(c), 7), str(int(k)))
@@ -195,7 +214,7 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
         ]
         parts.append(
             "Distinct end points of the chains (before refinement):\n"
-            + format_table(rows[:8], ("minimum", f"cost [{run_units(run).force_sq}]", "chains"))
+            + format_table(rows[:8], ("minimum", f"cost [{_cost_unit(run)}]", "chains"))
         )
     truth = _truth_for(recording)
     if truth:
@@ -221,8 +240,9 @@ def _check_domains(path: str | Path, results: ResultsFile) -> None:
     spec = cfg.spec if cfg.mass_in_spec else cfg.spec.extended([MASS])
     for run in results.runs:
         for name, value in run.params.items():
-            if name in spec:
-                check_value(spec[name], value, where(path, f"/runs/{run.label}: {name}"))
+            base = split_name(name)[0]  # a joint run's Fc[2] is an Fc
+            if base in spec:
+                check_value(spec[base], value, where(path, f"/runs/{run.label}: {name}"))
 
 
 def show_results(path: str | Path, *, recording: str | Path | None = None) -> str:
@@ -233,6 +253,8 @@ def show_results(path: str | Path, *, recording: str | Path | None = None) -> st
     truth = _truth_for(rec)
     runs = results.runs
     sq = run_units(runs[0]).force_sq if runs else "N²"
+    if runs and all(is_joint(r) for r in runs):
+        sq = "1"  # a joint cost sums each recording's squared residual over its s_k²
     columns = {r.label: r.params for r in runs}
     ems = {r.label: r.ems for r in runs}
     extra = sorted({n for r in runs for n in r.names} - {n for _, g in SEED_GROUPS for n in g})
@@ -255,4 +277,82 @@ def show_results(path: str | Path, *, recording: str | Path | None = None) -> st
         ],
         ("run", "method", f"cost [{sq}]", f"EMS [{sq}]", "before refine", "time [s]"),
     )
-    return f"{header}\n\n{body}\n\nRuns ranked by final cost\n{ranking}"
+    joint = [joint_section(r) for r in runs if is_joint(r)]
+    return "\n\n".join([header, body, f"Runs ranked by final cost\n{ranking}", *joint])
+
+
+def joint_section(run: RunResult) -> str:
+    """A joint run's recordings (residual entries, weight scale s_k, EMS of the own fit
+    and at the joint optimum) and its drift check (:func:`drift_lines`)."""
+    sq = run_units(run).force_sq
+    force = run_units(run).force
+    rows = [
+        (
+            str(k + 1),
+            str(m.get("name", "")),
+            str(m.get("n", "")),
+            fmt(float(m.get("sigma", np.nan)), 4),
+            fmt(float(m.get("own_ems", np.nan)), 5),
+            fmt(float(m.get("ems", np.nan)), 5),
+        )
+        for k, m in enumerate(members_of(run))
+    ]
+    table = format_table(
+        rows,
+        ("k", "recording", "n", f"s_k [{force}]", f"own EMS [{sq}]", f"joint EMS [{sq}]"),
+    )
+    return "\n".join(
+        [
+            "Recordings of the joint fit (NAME[k] is recording k's own value; each residual "
+            "is divided by s_k, the residual scale of the recording's own fit):",
+            table,
+            "",
+            *drift_lines(run),
+        ]
+    )
+
+
+def drift_lines(run: RunResult) -> list[str]:
+    """The drift check of a joint run: per-recording parameters whose values differ
+    between the recordings beyond their σ.
+
+    The fleet's statistic (:func:`fricjax.report.fleet.drift`): each recording's value
+    against the inverse-variance mean of the others, z-scores judged by the Bonferroni
+    threshold z* over all of them at family-wise α = 0.05. A parameter drifts when some
+    |z| exceeds z*; with two recordings this is |x_1 − x_2|/√(σ_1² + σ_2²) > z*. The z
+    ignore the correlation the shared parameters put between the recordings' values (ρ
+    in the run's correlation matrix)."""
+    from fricjax.report.fleet import drift
+
+    k_count = len(members_of(run))
+    bases = list(dict.fromkeys(b for b, k in map(split_name, run.names) if k is not None))
+    if not bases or k_count < 2:
+        return ["Drift check: no per-recording parameter ([joint].per_recording is empty)."]
+    pos = {name: i for i, name in enumerate(run.names)}
+    idx = np.array([[pos[f"{b}[{k + 1}]"] for b in bases] for k in range(k_count)])
+    values, stds = np.asarray(run.value)[idx], np.asarray(run.std)[idx]
+    test = drift(values, stds)
+    lines = []
+    for j, base in enumerate(bases):
+        z = np.abs(test.z[:, j])
+        shown = ", ".join(
+            f"{base}[{k + 1}] = {fmt(float(values[k, j]), 5)} ± {fmt(float(stds[k, j]), 2)}"
+            for k in range(k_count)
+        )
+        if np.isfinite(z).any() and np.nanmax(z) > test.threshold:
+            lines.append(
+                f"Drift: {base} differs between the recordings beyond its σ (max |z| = "
+                f"{np.nanmax(z):.3g} > z* = {test.threshold:.3g}): {shown}."
+            )
+        elif np.isfinite(z).any():
+            lines.append(
+                f"No drift of {base} (max |z| = {np.nanmax(z):.3g} ≤ z* = "
+                f"{test.threshold:.3g}): {shown}."
+            )
+        else:
+            lines.append(f"Drift of {base} not tested (σ not finite): {shown}.")
+    lines.append(
+        f"(z of each recording against the others' inverse-variance mean, Bonferroni over "
+        f"{test.m} tests at family-wise α = {test.alpha:g}; fricjax.report.fleet.)"
+    )
+    return lines
