@@ -216,8 +216,15 @@ def inspect_recording(
     return summary, fig
 
 
-def read_params(path: str | Path) -> dict[str, float]:
-    """Named parameter values from TOML/JSON (``name = value``) or a results file."""
+def read_params(
+    path: str | Path, *, member: int | None = None, recording: Recording | None = None
+) -> dict[str, float]:
+    """Named parameter values from TOML/JSON (``name = value``) or a results file.
+
+    A joint results file (:mod:`fricjax.joint`) gives one recording's parameters: those of
+    ``member`` (1-based, the order the recordings were given), else of the member whose
+    data are ``recording``'s (same sha256); neither is refused in one line, as is a
+    ``member`` given for anything but a joint file."""
     path = Path(path)
     if not path.exists():
         raise FricjaxError(f"{where(path)}: parameter file not found")
@@ -234,7 +241,7 @@ def read_params(path: str | Path) -> dict[str, float]:
                     "whose costs are not comparable; write one objective per file"
                 )
             best = min(runs, key=lambda r: r.cost)
-            return best.params
+            return _member_params(path, best, member, recording)
         if suffix == ".json":
             raw: Any = json.loads(path.read_text(encoding="utf-8"))
         elif suffix == ".toml":
@@ -248,6 +255,10 @@ def read_params(path: str | Path) -> dict[str, float]:
         raise FricjaxError(f"{where(path)}: not UTF-8 text (byte {err.start})") from None
     except OSError as err:
         raise FricjaxError(f"{where(path)}: cannot read ({err.strerror})") from None
+    if member is not None:
+        raise FricjaxError(
+            f"--member: {path} is not a joint results file; --member picks a recording of one"
+        )
     if not isinstance(raw, dict):
         raise FricjaxError(
             f"{where(path)}: top level must be a table of name = value, got "
@@ -264,6 +275,42 @@ def read_params(path: str | Path) -> dict[str, float]:
             raise FricjaxError(f"{where(path, key)}: not a finite number ({value})")
         out[key] = float(value)
     return out
+
+
+def _member_params(
+    path: Path, run: Any, member: int | None, recording: Recording | None
+) -> dict[str, float]:
+    """``run.params``, or for a joint run one member's (see :func:`read_params`)."""
+    from fricjax.joint import is_joint, member_params, members_of
+
+    if not is_joint(run):
+        if member is not None:
+            raise FricjaxError(
+                f"--member: {path} holds a single-recording fit; --member picks a recording of "
+                "a joint one"
+            )
+        return run.params
+    members = members_of(run)
+    n = len(members)
+    names = ", ".join(f"{k + 1} = {m.get('name', '?')}" for k, m in enumerate(members))
+    if member is None and recording is not None:
+        sha = recording.sha256()
+        found = [k for k, m in enumerate(members) if m.get("sha256") == sha]
+        if not found:
+            raise FricjaxError(
+                f"{where(path)}: a joint fit of {n} recordings ({names}) and "
+                f"{recording.path or recording.name} is none of them; give --member K to use "
+                "recording K's parameters"
+            )
+        return member_params(run.params, found[0])
+    if member is None:
+        raise FricjaxError(
+            f"{where(path)}: a joint fit of {n} recordings ({names}), not a single-recording "
+            "result; give --member K where the command takes it, or one recording's results"
+        )
+    if not 1 <= member <= n:
+        raise FricjaxError(f"--member: {member} is not a recording of {path} ({names})")
+    return member_params(run.params, member - 1)
 
 
 def cost_at(
@@ -578,6 +625,7 @@ def simulate_recording(
     out: str | Path | None = None,
     *,
     mass: float | None = None,
+    member: int | None = None,
 ) -> SimulationReport:
     """``fricjax simulate``: simulate identified parameters over a recording and compare
     x, v, a and force (:mod:`fricjax.simulation`).
@@ -593,6 +641,8 @@ def simulate_recording(
         substeps: RK4 sub-steps per sample interval.
         out: folder for ``simulation.json``, ``simulation.h5``, ``simulation.png``
             (written atomically); None writes nothing.
+        member: with a joint ``results``, the recording (1-based) whose parameters to
+            simulate; default the member that is ``recording`` (same data).
 
     Returns:
         :class:`fricjax.simulation.SimulationReport`.
@@ -619,15 +669,18 @@ def simulate_recording(
             f"{where('simulate', '--results/--params')}: give exactly one of them "
             f"({'neither' if results is None else 'both'} given)"
         )
+    rec = recording if isinstance(recording, Recording) else read_recording(recording, mass=mass)
     if results is not None:
         results = Path(results)
         if not results.is_file():
             raise FricjaxError(f"{where(results)}: results file not found")
         if results.suffix.lower() not in (".h5", ".hdf5"):
             raise FricjaxError(f"{where(results)}: not a results .h5 (use --params for TOML/JSON)")
-        named, source = read_params(results), str(results)
+        named, source = read_params(results, member=member, recording=rec), str(results)
         if config is None:
             config = _config_from_results(results)
+    elif member is not None:
+        raise FricjaxError("--member: picks a recording of a joint --results; none given")
     elif isinstance(params, dict):
         named, source = {k: float(v) for k, v in params.items()}, "params"
     else:
@@ -635,7 +688,6 @@ def simulate_recording(
     if config is None:
         raise FricjaxError(f"{where(source)}: holds no config; give --config")
     cfg = config if isinstance(config, Config) else load_config(config)
-    rec = recording if isinstance(recording, Recording) else read_recording(recording, mass=mass)
     ctrl = controller if isinstance(controller, CascadePD) else parse_controller(controller)
     report = simulate_against(rec, cfg, named, controller=ctrl, substeps=substeps, source=source)
     if out is not None:

@@ -39,6 +39,14 @@ DefaultConfigOpt = Annotated[
 MassOpt = Annotated[
     float | None, typer.Option("--mass", help="Moving mass [kg] (for CSV or to override)")
 ]
+MemberOpt = Annotated[
+    int | None,
+    typer.Option(
+        help="With a joint --results: use recording K's parameters (1-based, the order "
+        "given to identify; default: the member whose data are RECORDING)",
+        min=1,
+    ),
+]
 #: The PRNG key holds 64 bits (:func:`fricjax.identify.prng_key`): a larger or negative
 #: seed would silently alias another one.
 SEED_RANGE = {"min": 0, "max": 2**64 - 1}
@@ -232,6 +240,7 @@ def identify(
         "separable": separable,
         "objective": objective,
     }
+
     def on_member(k: int, total: int, name: str) -> None:
         typer.echo(f"own fit {k + 1}/{total}: {name}", err=True)
 
@@ -403,6 +412,7 @@ def validate(
     simulate: Annotated[bool, typer.Option(help="Also compare a simulation")] = True,
     mass: MassOpt = None,
     out: Annotated[Path | None, typer.Option(help="Write the metrics as JSON")] = None,
+    member: MemberOpt = None,
 ) -> None:
     """Evaluate identified parameters on a recording: IDIM relative error, error norm and
     std, EMS; simulation error (closed loop with --controller and /r, else open loop)."""
@@ -417,6 +427,7 @@ def validate(
         simulate_run=simulate,
         mass=mass,
         out=out,
+        member=member,
     )
     typer.echo(format_validation(report))
     if out is not None:
@@ -442,6 +453,7 @@ def simulate(
     substeps: Annotated[int, typer.Option(help="RK4 sub-steps per sample interval", min=1)] = 4,
     out: Annotated[Path, typer.Option(help="Output folder")] = Path("simulation"),
     mass: MassOpt = None,
+    member: MemberOpt = None,
 ) -> None:
     """Simulate identified parameters from the recording's initial state and compare x, v,
     a and force: RMS error, relative error, fit %; writes OUT/simulation.json, .h5, .png."""
@@ -458,6 +470,7 @@ def simulate(
         substeps=substeps,
         out=out,
         mass=mass,
+        member=member,
     )
     typer.echo(format_simulation(report))
     typer.echo(f"files: {', '.join(str(p) for p in report.files.values())}")

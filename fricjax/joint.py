@@ -72,7 +72,7 @@ from fricjax.io.results import RunResult
 from fricjax.limits import check_chains
 from fricjax.problem import Problem
 from fricjax.refine import cluster_minima, refine_many, uncertainty_at, value_and_jacobian
-from fricjax.search.chains import LevelInfo, Traces, run_chains
+from fricjax.search.chains import LevelInfo, run_chains
 
 JOINT_TABLE = "joint"
 JOINT_KEYS = ("per_recording",)
@@ -130,8 +130,7 @@ class JointSettings:
         for name in names:
             if name == "mass" and not cfg.mass_in_spec:
                 raise FricjaxError(
-                    f"{loc}: 'mass' is not in [params]: each recording's own mass is used "
-                    "already"
+                    f"{loc}: 'mass' is not in [params]: each recording's own mass is used already"
                 )
             if name not in cfg.spec:
                 raise FricjaxError(
@@ -284,14 +283,9 @@ class JointProblem:
 def joint_problem(
     problems: Sequence[Problem], per_recording: Sequence[str], sigma: Sequence[float]
 ) -> JointProblem:
-    """Lay out the joint free vector of ``problems`` (module docstring)."""
+    """Lay out the joint free vector of ``problems`` (module docstring); they come from one
+    config, so their free parameters are the same names in the same order."""
     spec = problems[0].spec
-    for q in problems[1:]:
-        if q.spec.free_names != spec.free_names:
-            raise FricjaxError(
-                f"{where(q.source or q.name)}: its free parameters ({', '.join(q.spec.free_names)}) "
-                f"differ from {problems[0].source or problems[0].name}'s"
-            )
     shared = [p for p in spec.free if p.name not in per_recording]
     own = [p for p in spec.free if p.name in per_recording]
     names = [p.name for p in shared] + [
@@ -350,7 +344,7 @@ def identify_joint(
     if settings.objective != "equation":
         raise FricjaxError(
             "[search].objective: a joint fit minimises the equation error only; set "
-            "objective = \"equation\" (or fit the recordings one at a time)"
+            'objective = "equation" (or fit the recordings one at a time)'
         )
     start = time.perf_counter()
     own = []
@@ -366,7 +360,8 @@ def identify_joint(
     start_cost = np.asarray(_batch_cost(cost_fn, jnp.asarray(starts)))
     if settings.separable:
         chain_x, chain_cost = starts, start_cost
-        traces = {k: np.zeros((0, len(starts))) for k in ("best_cost", "current_cost", "acceptance")}
+        per_chain = ("best_cost", "current_cost", "acceptance")
+        traces = {k: np.zeros((0, len(starts))) for k in per_chain}
         traces.update({k: np.zeros(0) for k in ("temperature", "n_evals", "wall_time")})
         levels, t0, interrupted, polish = 0, 0.0, False, starts
     else:
@@ -395,7 +390,11 @@ def identify_joint(
     residual = jp.residual_fn
     if settings.refine and not interrupted:
         out = refine_many(
-            residual, polish, jp.lower, jp.upper, settings.refiner,
+            residual,
+            polish,
+            jp.lower,
+            jp.upper,
+            settings.refiner,
             fast_compile=settings.fast_compile,
         )
         xs, cs = np.asarray(out.x), np.asarray(out.cost_after)

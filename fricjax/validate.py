@@ -415,24 +415,27 @@ def validate_recording(
     simulate_run: bool = True,
     mass: float | None = None,
     out: str | Path | None = None,
+    member: int | None = None,
 ) -> Validation:
     """``fricjax validate``: parameters from ``results`` (a results .h5: its best run; or
     TOML/JSON ``name = value``), config from ``config`` or the one stored in the results
-    file; optional JSON report ``out`` (written atomically)."""
+    file; optional JSON report ``out`` (written atomically). A joint results file gives
+    the parameters of recording ``member`` (1-based), by default of the member that is
+    ``recording`` (same data; :func:`fricjax.api.read_params`)."""
     from fricjax.api import read_params
 
     if out is not None:
         inputs = {"recording": recording, "--results": results, "--config": config}
         check_outputs([Path(out)], inputs, "--out")
     results = Path(results)
-    params = read_params(results)
+    rec = read_recording(recording, mass=mass)
+    params = read_params(results, member=member, recording=rec)
     if config is not None:
         cfg = load_config(config)
     elif results.suffix.lower() in (".h5", ".hdf5"):
         cfg = _config_from_results(results)
     else:
         raise FricjaxError(f"{where(results)}: holds no config; give --config")
-    rec = read_recording(recording, mass=mass)
     report = validate_model(
         rec,
         cfg,
