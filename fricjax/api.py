@@ -438,7 +438,7 @@ def identify_recordings(
 
     from fricjax.identify import IdentifySettings
     from fricjax.io.results import ResultsFile, provenance, write_results
-    from fricjax.joint import JointSettings, check_alike, identify_joint
+    from fricjax.joint import JointSettings, identify_joint
 
     cfg = load_config(config)
     joint = JointSettings.from_config(cfg)
@@ -452,8 +452,7 @@ def identify_recordings(
     )
     inputs: dict[str, str | Path | None] = {f"recording {r}": r for r in recordings}
     check_outputs([path], {**inputs, "--config": cfg.source}, "--out")
-    recs = [read_recording(r, mass=mass) for r in recordings]
-    check_alike(recs, [str(r) for r in recordings])
+    recs = alike_recordings(recordings, mass=mass)
     problems = [build_problem(rec, cfg) for rec in recs]
     run = identify_joint(problems, settings, joint, on_level=on_level, on_member=on_member)
     run.attrs["axis"] = cfg.axis.kind
@@ -468,6 +467,16 @@ def identify_recordings(
     )
     write_results(ResultsFile(runs=[run], attrs=attrs), path)
     return run, path
+
+
+def alike_recordings(recordings: list[str | Path], *, mass: float | None = None) -> list[Recording]:
+    """Read recordings for one joint fit, refusing (one line) recordings of different kinds
+    or the same one twice (:func:`fricjax.joint.check_alike`)."""
+    from fricjax.joint import check_alike
+
+    recs = [read_recording(r, mass=mass) for r in recordings]
+    check_alike(recs, [str(r) for r in recordings])
+    return recs
 
 
 def sweep_recording(

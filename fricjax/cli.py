@@ -217,12 +217,19 @@ def identify(
 ) -> None:
     """Identify the config's parameters on a recording (annealing chains + refiner); on
     several recordings of one axis, jointly (docs/joint.md)."""
-    from fricjax.api import config_or_default, enable_compilation_cache, identify_recordings
+    from fricjax.api import (
+        alike_recordings,
+        config_or_default,
+        enable_compilation_cache,
+        identify_recordings,
+    )
     from fricjax.report.show import run_summary
 
     recordings = recording
-    if len(recordings) > 1 and config is None:
-        raise FricjaxError("--config: missing; a joint fit of several recordings needs one")
+    if len(recordings) > 1:
+        if config is None:
+            raise FricjaxError("--config: missing; a joint fit of several recordings needs one")
+        alike_recordings(list(recordings), mass=mass)  # before the scale check reads them
     config = config_or_default(recordings[0], config)
     for rec in recordings:
         _warn_scale(rec, config, mass)
