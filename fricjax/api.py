@@ -428,7 +428,12 @@ def identify_recordings(
     config's ``[joint].per_recording`` ones, each recording weighted by its noise), and
     the joint run written to one results file (``kind = "joint"``, atomic). Default
     ``out``: ``STEM1_joint_METHOD_sSEED.results.h5`` beside the first recording."""
+    from fricjax.joint import JointSettings
+
     if len(recordings) == 1:
+        # the [joint] table is checked even where it does not apply: a typo never waits
+        # for the day a second recording is given
+        JointSettings.from_config(load_config(config))
         return identify_recording(
             recordings[0], config, overrides=overrides, out=out, mass=mass, on_level=on_level
         )
@@ -438,7 +443,7 @@ def identify_recordings(
 
     from fricjax.identify import IdentifySettings
     from fricjax.io.results import ResultsFile, provenance, write_results
-    from fricjax.joint import JointSettings, identify_joint
+    from fricjax.joint import identify_joint
 
     cfg = load_config(config)
     joint = JointSettings.from_config(cfg)

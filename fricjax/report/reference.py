@@ -29,6 +29,7 @@ from fricjax.data.preprocess import PreprocessSettings
 from fricjax.diagnose.run import DiagnoseSettings
 from fricjax.identify import SEARCH_KEYS, SEPARABLE_TABLE, IdentifySettings
 from fricjax.io.atomic import write_text_atomic
+from fricjax.joint import JointSettings
 from fricjax.model.registry import TERMS
 from fricjax.model.system import MASS
 from fricjax.model.term import Signals, Term
@@ -261,6 +262,13 @@ def _settings_sections() -> list[str]:
             "The output-error fit of `--objective simulation` "
             "(`fricjax.output_error.OutputErrorSettings`).",
             list(OutputErrorSettings._field_defaults.items()),
+        ),
+        (
+            "joint",
+            "A joint fit of several recordings, `fricjax identify REC1 REC2 ...` "
+            "(`fricjax.joint.JointSettings`, docs/joint.md): `per_recording` names the free "
+            "parameters that take one value per recording; the others are shared.",
+            _dataclass_defaults(JointSettings),
         ),
         (
             "diagnose",
