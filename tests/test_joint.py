@@ -30,35 +30,12 @@ from fricjax.validate import validate_recording
 
 #: Each twin's own offset [N]; everything else is AXIS_TRUTH, shared.
 OFFSETS = (6.0, -4.0)
-#: x noise [m] and, in CONFIG, a 200 Hz filter and the mass weighed (fixed): measured on
-#: these twins, the equation error's own biases (the filter across the reversals, noise in
-#: a regressor) then stay within 0.5 σ of each recording's fit.
+#: x noise [m]; with CONFIG's 200 Hz filter and weighed mass the equation error's own
+#: biases stay within half a σ of each recording's fit (measured).
 NOISE = 2e-6
-CONFIG = """
-[model]
-terms = ["measured_input", "coulomb_viscous"]
-
-[params]
-gain = { unit = "N/V", value = 35.0 }
-offset = { unit = "N", lower = -10.0, upper = 10.0, init = 0.0 }
-Fc = { unit = "N", lower = 0.0, upper = 100.0, init = 50.0 }
-Fv = { unit = "N*s/m", lower = 0.0, upper = 1000.0, init = 500.0 }
-mass = { unit = "kg", value = 95.0 }
-
-[preprocess]
-method = "butterworth"
-order = 4
-cutoff_hz = 200.0
-trim = 20
-
-[search]
-separable = true
-chains = 8
-seed = 0
-
-[joint]
-per_recording = ["offset"]
-"""
+ROOT = Path(__file__).resolve().parents[1]
+#: The axis with a weighed mass and one drive offset per recording.
+CONFIG = ROOT / "configs" / "axis_joint.toml"
 SHARED = ("Fc", "Fv")
 
 
@@ -76,8 +53,7 @@ def write_twins(folder: Path) -> list[Path]:
 def fitted(tmp_path_factory: pytest.TempPathFactory):
     folder = tmp_path_factory.mktemp("joint")
     paths = write_twins(folder)
-    config = folder / "joint.toml"
-    config.write_text(CONFIG, encoding="utf-8")
+    config = CONFIG
     run, out = identify_recordings(paths, config, out=folder / "joint.h5")
     single, single_out = identify_recording(paths[0], config, out=folder / "single.h5")
     return folder, paths, config, run, out, single, single_out
@@ -195,7 +171,10 @@ def test_show_lists_the_recordings_and_their_weights(fitted) -> None:
 def test_a_bad_joint_table_is_one_line(fitted, joint_table, needle, capsys) -> None:
     folder, paths, *_ = fitted
     bad = folder / "bad.toml"
-    bad.write_text(CONFIG.replace('per_recording = ["offset"]', joint_table), encoding="utf-8")
+    bad.write_text(
+        CONFIG.read_text(encoding="utf-8").replace('per_recording = ["offset"]', joint_table),
+        encoding="utf-8",
+    )
     with pytest.raises(SystemExit) as exc:
         main(["identify", *map(str, paths), "-c", str(bad), "--out", str(folder / "x.h5")])
     err = capsys.readouterr().err.strip().splitlines()
