@@ -200,3 +200,83 @@ def test_recordings_of_different_kinds_or_a_joint_file_misused_are_one_line(fitt
         read_params(folder / "single.h5", member=1)
     with h5py.File(out) as f:
         assert f.attrs["kind"] == "joint"
+
+
+#: Two strokes of one axis whose Coulomb level differs with the direction (Fc ± asym_dFc),
+#: each moving one way only: alone a stroke cannot tell Fc from asym_dFc (both constant
+#: forces), together they can.
+STROKE_TRUTH = {**AXIS_TRUTH, "Fc": 20.0, "asym_dFc": 4.0, "asym_dFv": 0.0}
+STROKES = """
+[model]
+terms = ["measured_input", "coulomb_viscous", "asymmetric_friction"]
+
+[params]
+gain = { unit = "N/V", value = 35.0 }
+offset = { unit = "N", value = 0.0 }
+Fc = { unit = "N", lower = 0.0, upper = 100.0, init = 50.0 }
+Fv = { unit = "N*s/m", lower = 0.0, upper = 1000.0, init = 500.0 }
+asym_dFc = { unit = "N", lower = -20.0, upper = 20.0, init = 0.0 }
+asym_dFv = { unit = "N*s/m", value = 0.0 }
+mass = { unit = "kg", value = 95.0 }
+
+[preprocess]
+method = "butterworth"
+order = 4
+cutoff_hz = 200.0
+trim = 20
+
+[search]
+chains = 8
+seed = 0
+refine_top = 2
+
+[anneal]
+K = 10.0
+alpha = 0.8
+steps_per_level = 5
+t_min_rel = 1e-4
+patience = 5
+rel_tol = 1e-4
+max_levels = 100
+"""
+
+
+def write_stroke(path: Path, direction: float, seed: int) -> Path:
+    """1 s from rest, pushed one way by ``direction·(1.5 + …)`` V: 0.8 V at least, 28 N, more
+    than the 24 N of Coulomb friction forward, so the axis never stops or turns."""
+    import jax.numpy as jnp
+
+    from fricjax.diagnose.catalogue import AsymmetricFriction
+    from fricjax.model.drive import MeasuredInput
+    from fricjax.model.friction import CoulombViscous
+    from fricjax.model.simulate import simulate
+    from fricjax.model.system import Model
+
+    t = np.arange(1000) / 1000.0
+    u = direction * (
+        1.5 + 0.4 * np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 1.0)
+    )
+    model = Model((MeasuredInput(), CoulombViscous(), AsymmetricFriction()))
+    p = {k: jnp.asarray(v) for k, v in STROKE_TRUTH.items()}
+    x = np.asarray(simulate(model, p, jnp.asarray(t), 0.0, 0.0, jnp.asarray(u), substeps=4).x)
+    x = x + np.random.default_rng(seed).normal(0.0, NOISE, t.size)
+    return write_recording(Recording(t=t, x=x, u=u, u_unit="V", name=f"stroke{seed}"), path)
+
+
+@pytest.mark.slow  # ~25 s on 2 cores: a full (not separable) search, three times
+def test_opposite_strokes_jointly_determine_the_asymmetry_one_stroke_cannot(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "strokes.toml"
+    config.write_text(STROKES, encoding="utf-8")
+    paths = [write_stroke(tmp_path / f"s{k}.h5", d, k) for k, d in enumerate((1.0, -1.0))]
+    alone, _ = identify_recording(paths[0], config, out=tmp_path / "alone.h5")
+    for name in ("Fc", "asym_dFc"):
+        assert np.isinf(alone.std[alone.names.index(name)])  # a constant force either way
+    run, _ = identify_recordings(paths, config, out=tmp_path / "joint.h5")
+    for name in ("Fc", "asym_dFc"):
+        i = run.names.index(name)
+        assert np.isfinite(run.std[i]) and abs(run.value[i] - STROKE_TRUTH[name]) < 2 * run.std[i]
+    # the asymmetry is seen: Fc + asym_dFc forward and Fc − asym_dFc backward differ
+    i = run.names.index("asym_dFc")
+    assert run.value[i] > 2 * run.std[i]
