@@ -6,6 +6,7 @@ usage mistake one line with exit 2."""
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 from pathlib import Path
 
 import h5py
@@ -14,7 +15,7 @@ import pytest
 
 from fricjax.api import identify_recording, identify_recordings, load, read_params
 from fricjax.cli import main
-from fricjax.config import load_config
+from fricjax.config import load_config, parse_config
 from fricjax.data.recording import Recording, read_recording, write_recording
 from fricjax.data.twin import AXIS_TRUTH, axis_twin
 from fricjax.errors import FricjaxError
@@ -25,6 +26,7 @@ from fricjax.joint import (
     members_of,
     split_name,
 )
+from fricjax.problem import build_problem
 from fricjax.report.show import drift_lines, show_results
 from fricjax.validate import validate_recording
 
@@ -106,6 +108,19 @@ def test_joint_cost_and_residual_are_the_weighted_sums_of_the_members(fitted) ->
     np.testing.assert_allclose(float(jp.cost_fn(theta)), expected, rtol=1e-10)
     np.testing.assert_allclose(r @ r, expected, rtol=1e-10)
     assert r.shape == (problems[0].n + problems[1].n,)
+
+
+def test_a_fixed_value_that_differs_between_recordings_is_stored_per_recording(fitted) -> None:
+    _, paths, *_ = fitted
+    text = CONFIG.read_text(encoding="utf-8").replace('mass = { unit = "kg", value = 95.0 }', "")
+    cfg = parse_config(tomllib.loads(text))  # the mass now comes from each recording
+    recs = [
+        dataclasses.replace(read_recording(p), mass=m)
+        for p, m in zip(paths, (95.0, 96.0), strict=True)
+    ]
+    jp = joint_problem([build_problem(r, cfg) for r in recs], ("offset",), [1.0, 1.0])
+    assert jp.fixed() == {"gain": 35.0, "mass[1]": 95.0, "mass[2]": 96.0}
+    assert member_params({**jp.fixed(), "Fc": 20.0}, 1) == {"gain": 35.0, "mass": 96.0, "Fc": 20.0}
 
 
 def test_one_recording_is_the_single_identify_bit_for_bit(fitted) -> None:
