@@ -12,6 +12,8 @@ Layout::
     F0 = { unit = "N", lower = 216.35, upper = 649.05, init = 432.7 }
     delta = { unit = "1", value = 1.0 }          # value => fixed
     mass = { unit = "kg", lower = 50, upper = 150, init = 95 }   # optional: mass free
+    [joint]                         # several recordings fitted jointly (fricjax.joint)
+    per_recording = ["F0"]          # one value per recording; the rest shared
 
 Every mistake (unknown term or parameter, missing parameter, lower > upper, fixed value
 outside bounds, wrong unit, unknown table key) is refused with one line naming the file.

@@ -101,15 +101,20 @@ def determination(run: RunResult) -> str:
     """Plain words: which parameters the record does not determine, and what would fix it."""
     loose = undetermined(run)
     pairs = correlated_pairs(run)
+    record, subject = (
+        ("the joint records", "The joint records do")
+        if is_joint(run)
+        else ("this record", "This record does")
+    )
     if not loose and not pairs:
         return (
-            f"Every parameter is determined by this record (±2σ within ±{200 * LOOSE_SIGMA:.0f} %"
+            f"Every parameter is determined by {record} (±2σ within ±{200 * LOOSE_SIGMA:.0f} %"
             " of its value, none on a bound)."
         )
     lines = []
     if loose:
         lines.append(
-            f"This record does NOT determine {len(loose)} of {len(run.names)} parameters: "
+            f"{subject} NOT determine {len(loose)} of {len(run.names)} parameters: "
             f"{', '.join(loose)}. Their values come from the box or the noise, not from the "
             "physics; do not read them as measured."
         )
