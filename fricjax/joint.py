@@ -352,6 +352,9 @@ def identify_joint(
         if on_member is not None:
             on_member(k, len(problems), problem.name)
         own.append(identify(problem, settings))
+        if own[-1].attrs.get("interrupted"):
+            # Ctrl-C in an own fit: no weights, so no joint fit to keep (nothing is written)
+            raise KeyboardInterrupt
     sigma = [residual_scale(run, p) for run, p in zip(own, problems, strict=True)]
     jp = joint_problem(problems, joint.per_recording, sigma)
     d = len(jp.names)
@@ -364,6 +367,7 @@ def identify_joint(
         traces = {k: np.zeros((0, len(starts))) for k in per_chain}
         traces.update({k: np.zeros(0) for k in ("temperature", "n_evals", "wall_time")})
         levels, t0, interrupted, polish = 0, 0.0, False, starts
+        candidates, costs = starts, start_cost
     else:
         check_chains(settings.chains, jp.n, d, settings.anneal.max_levels, "identify (joint)")
         search = run_chains(
@@ -382,8 +386,8 @@ def identify_joint(
         levels, t0, interrupted = search.levels_run, float(search.t0), bool(search.interrupted)
         top = np.argsort(chain_cost)[: min(settings.refine_top, chain_cost.size)]
         polish = np.concatenate([chain_x[top], starts])
-    candidates = np.concatenate([chain_x, starts]) if not settings.separable else starts
-    costs = np.concatenate([chain_cost, start_cost]) if not settings.separable else start_cost
+        candidates = np.concatenate([chain_x, starts])
+        costs = np.concatenate([chain_cost, start_cost])
     i = int(np.nanargmin(costs))
     best_x, cost_search = candidates[i], float(costs[i])
     best_cost, refined = cost_search, False
