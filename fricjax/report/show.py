@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -317,9 +318,29 @@ def joint_section(run: RunResult) -> str:
     )
 
 
-def drift_lines(run: RunResult) -> list[str]:
+@dataclass(frozen=True)
+class DriftFinding:
+    """The drift test of one per-recording parameter of a joint run (:func:`joint_drift`).
+
+    ``name``: the parameter; ``values``, ``stds`` [K]: its value and σ per recording;
+    ``z_max``: the largest |z| (NaN: not tested, a σ not finite); ``threshold``: z*;
+    ``m``: z-scores in the Bonferroni family; ``drifted``: ``z_max > threshold``."""
+
+    name: str
+    values: np.ndarray
+    stds: np.ndarray
+    z_max: float
+    threshold: float
+    m: int
+
+    @property
+    def drifted(self) -> bool:
+        return bool(self.z_max > self.threshold)
+
+
+def joint_drift(run: RunResult) -> list[DriftFinding]:
     """The drift check of a joint run: per-recording parameters whose values differ
-    between the recordings beyond their σ.
+    between the recordings beyond their σ ([] without per-recording parameters).
 
     The fleet's statistic (:func:`fricjax.report.fleet.drift`): each recording's value
     against the inverse-variance mean of the others, z-scores judged by the Bonferroni
@@ -332,32 +353,45 @@ def drift_lines(run: RunResult) -> list[str]:
     k_count = len(members_of(run))
     bases = list(dict.fromkeys(b for b, k in map(split_name, run.names) if k is not None))
     if not bases or k_count < 2:
-        return ["Drift check: no per-recording parameter ([joint].per_recording is empty)."]
+        return []
     pos = {name: i for i, name in enumerate(run.names)}
     idx = np.array([[pos[f"{b}[{k + 1}]"] for b in bases] for k in range(k_count)])
     values, stds = np.asarray(run.value)[idx], np.asarray(run.std)[idx]
     test = drift(values, stds)
-    lines = []
+    out = []
     for j, base in enumerate(bases):
         z = np.abs(test.z[:, j])
+        z_max = float(np.nanmax(z)) if np.isfinite(z).any() else float("nan")
+        out.append(DriftFinding(base, values[:, j], stds[:, j], z_max, test.threshold, test.m))
+    return out
+
+
+def drift_lines(run: RunResult) -> list[str]:
+    """:func:`joint_drift` in words, one line per per-recording parameter."""
+    from fricjax.report.fleet import ALPHA
+
+    findings = joint_drift(run)
+    if not findings:
+        return ["Drift check: no per-recording parameter ([joint].per_recording is empty)."]
+    lines = []
+    for f in findings:
         shown = ", ".join(
-            f"{base}[{k + 1}] = {fmt(float(values[k, j]), 5)} ± {fmt(float(stds[k, j]), 2)}"
-            for k in range(k_count)
+            f"{f.name}[{k + 1}] = {fmt(float(v), 5)} ± {fmt(float(s), 2)}"
+            for k, (v, s) in enumerate(zip(f.values, f.stds, strict=True))
         )
-        if np.isfinite(z).any() and np.nanmax(z) > test.threshold:
+        if f.drifted:
             lines.append(
-                f"Drift: {base} differs between the recordings beyond its σ (max |z| = "
-                f"{np.nanmax(z):.3g} > z* = {test.threshold:.3g}): {shown}."
+                f"Drift: {f.name} differs between the recordings beyond its σ (max |z| = "
+                f"{f.z_max:.3g} > z* = {f.threshold:.3g}): {shown}."
             )
-        elif np.isfinite(z).any():
+        elif np.isfinite(f.z_max):
             lines.append(
-                f"No drift of {base} (max |z| = {np.nanmax(z):.3g} ≤ z* = "
-                f"{test.threshold:.3g}): {shown}."
+                f"No drift of {f.name} (max |z| = {f.z_max:.3g} ≤ z* = {f.threshold:.3g}): {shown}."
             )
         else:
-            lines.append(f"Drift of {base} not tested (σ not finite): {shown}.")
+            lines.append(f"Drift of {f.name} not tested (σ not finite): {shown}.")
     lines.append(
         f"(z of each recording against the others' inverse-variance mean, Bonferroni over "
-        f"{test.m} tests at family-wise α = {test.alpha:g}; fricjax.report.fleet.)"
+        f"{findings[0].m} tests at family-wise α = {ALPHA:g}; fricjax.report.fleet.)"
     )
     return lines
