@@ -298,3 +298,15 @@ def test_opposite_strokes_jointly_determine_the_asymmetry_one_stroke_cannot(
     # the asymmetry is seen: Fc + asym_dFc forward and Fc − asym_dFc backward differ
     i = run.names.index("asym_dFc")
     assert run.value[i] > 2 * run.std[i]
+
+
+def test_the_command_line_gives_the_api_result(fitted, capsys, monkeypatch) -> None:
+    folder, paths, config, run, *_ = fitted
+    monkeypatch.setenv("FRICJAX_COMPILATION_CACHE", "0")  # no cache folder for a test
+    out = folder / "cli.h5"
+    main(["identify", *map(str, paths), "-c", str(config), "--out", str(out), "--quiet"])
+    text = capsys.readouterr().out
+    back = read_results(out).runs[0]
+    np.testing.assert_array_equal(back.value, run.value)  # same seed, same answer
+    np.testing.assert_array_equal(back.std, run.std)
+    assert "Drift: offset differs" in text and f"results: {out}" in text
