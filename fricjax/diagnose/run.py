@@ -28,15 +28,15 @@ from fricjax.diagnose.catalogue import (
     near_drive_harmonic,
     ranges,
 )
+from fricjax.diagnose.evidence import Evidence, NearRest, near_rest_band, record_noise
 from fricjax.diagnose.locate import (
     NOISE_MODELS,
     LocateReport,
     TooShortToLocate,
     default_whitener,
     locate,
-    near_rest,
     resolve_noise,
-    rest_sigma,
+    static_level,
 )
 from fricjax.diagnose.select import (
     MIN_DOF_LEFT,
@@ -64,21 +64,6 @@ from fricjax.params import ParamSpec
 from fricjax.problem import Problem
 from fricjax.refine import RefineSettings, refine
 
-# Changes of the friction law that act mostly where the plant comes to rest. A large
-# share of samples at or near rest (|v| < 4σ_v: the whitener's reversal mask, left out of
-# the tests) means long stick phases, and around them the equation error of the TRUE model
-# is not noise: on a 2 s benchmark record with a hidden Stribeck drop and 48 % of its
-# samples near rest, the noise-free record at its true parameters left 153 σ_x² of
-# whitened residual over 218 dof, at sliding speeds of 0.03-0.3 m/s next to the stick
-# phases, falling from 40-75 N rms one to three samples from a masked one to 4-7 N at
-# 15-25 (as the low-pass filter's smearing of each breakaway would), and the base fit
-# went to the corner of its box (vs, Fs and Fc at their lower bounds).
-# In the concealed benchmark (run at 1673127) every friction-law first finding at a
-# near-rest fraction >= 0.2 was wrong (0/5: Stribeck and asymmetric friction named
-# presliding_hysteresis, presliding named stribeck); top-1 over all effects was 10/13
-# below 0.1 and 2/17 at >= 0.2, where 10 of the 14 hidden friction-law effects lie.
-NEAR_REST_LAWS = ("stribeck", "stribeck_shape", "asymmetric_friction", "presliding_hysteresis")
-NEAR_REST_CAVEAT = 0.2
 # the candidates the simulation test offers, by DiagnoseSettings.simulation_terms
 SIMULATION_TERMS = {"laws": LAWS, "all": TERMS}
 # Time limits [s] of a diagnosis (DiagnoseSettings docstring).
@@ -220,6 +205,8 @@ class Diagnosis:
     locate_after: LocateReport | None  # None: too few degrees of freedom left (extra)
     problem: Problem
     base_spec: ParamSpec
+    evidence: Evidence  # the record's own noise: the scale of every test
+    near_rest: NearRest  # the record's near-rest band
     clock: Clock = field(default_factory=Clock)  # stages' wall times, limits, what was skipped
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -231,10 +218,17 @@ class Diagnosis:
                 "findings": self.findings,
                 "fit": self.fit,
                 "heldout": self.heldout,
-                # what the record allows: noise level, and the share of samples at or near
-                # rest, where friction-law names are uncertain (NEAR_REST_CAVEAT)
+                # what the record allows: its own noise, with its error, and the near-rest band
                 "data": {
-                    k: self.extra[k] for k in ("sigma_x_m", "near_rest_fraction") if k in self.extra
+                    "sigma_x_m": self.evidence.sigma_x,
+                    "sigma_x_se_m": self.evidence.noise.se,
+                    "noise_model": self.evidence.noise.model,
+                    "sigma_x_dof": self.evidence.nu,
+                    "test_scale": "residual spectrum"
+                    if self.selection.whitener.spectral
+                    else "record",
+                    "near_rest_speed_mps": self.near_rest.speed,
+                    "near_rest_fraction": self.near_rest.share,
                 },
                 **{
                     k: self.extra[k]
@@ -917,70 +911,37 @@ def _figures(
     return {"ems": pb.ems(theta), "bic": b, "rss_whitened": rss}
 
 
-#: κ of the rest mask on a second recording (``--validation``), which also takes the larger
-#: of the two recordings' σ̂_x. A model fitted on the record holds its sliding law only
-#: where the record slid (|v| ≥ 4·σ_v there). Which samples near a stop or a breakaway clear
-#: that bar depends on each recording's own noise and on its σ̂_x (:func:`rest_sigma`, from
-#: the sliding law's residual, flips included: 142.9 and 65.1 µm on two noise draws of
-#: one 1 s motion whose σ_x is 24 µm). Marked as the record is, a second recording of the
-#: same motion slides on samples the record held at rest, and the held-out check scores
-#: the sliding law where it was never fitted. Of the record's samples at rest the second
-#: recording's mask missed, at κ = 4 with its own σ̂_x, 143 of 565 on that motion and 38 of
-#: 181 on the concealed 1 s drift c193ac2dd67 (σ̂_x 38.6 and 31.9 µm); with the larger σ̂_x,
-#: 7 and 17 at κ = 4, 0 and 2 at 5, none at 6. On that drift the base and base + drift
-#: fitted on the record (truth start) scored 678 and 600 σ_x² on the second recording
-#: marked at κ = 4 (141 dof), 165 and 162 marked by this rule (128 dof).
-SECOND_RECORDING_KAPPA = 6.0
-
-
-def with_rest(
-    problem: Problem, theta: np.ndarray, kappa: float = 4.0, sigma_x: float | None = None
-) -> Problem:
-    """``problem`` with its samples at or near rest marked (:attr:`Problem.rest`):
-    ``|v| < κ·σ_v`` (:func:`~fricjax.diagnose.locate.near_rest` at ``theta``, with its σ̂_x
-    unless ``sigma_x`` [m] is given; on a second recording see
-    :data:`SECOND_RECORDING_KAPPA`), the samples the whitener leaves out of every test.
+def with_rest(problem: Problem, theta: np.ndarray, sigma_x: float) -> Problem:
+    """``problem`` with its samples near rest marked (:attr:`Problem.rest`): ``|v| < κ·σ_v``
+    with the record's own σ̂_x ``sigma_x`` [m] (:func:`~fricjax.diagnose.evidence.
+    near_rest_band`), the samples the whitener leaves out of every equation-error test;
+    none where the model at ``theta`` has no static friction (nothing sticks).
 
     Why. A plant that sticks is at rest, with zero net force, while the drive stays within
     the static limit; its filtered velocity there is noise around zero. The seed's residual
-    still evaluates the sliding law ``F_f(v)`` there (``sgn`` of noise) and, next to each
-    stop and breakaway, on a velocity the low-pass filter has smeared into the stick phase;
-    the whitener projects out only the directions where such spikes would show, so part of
-    them stays in the tests. Noise-free, at the true parameters, whitened as the diagnosis
-    whitens (measured on the concealed benchmark): a 2 s record with 47 % of its samples near
-    rest (c7feda453be) kept 153 σ_x² over 244 degrees of freedom, a 1 s record with 52 %
-    (c1017f81e6d) 198 over 120; with the stick/slip rule on these samples, 25 and 6.7. A
-    Stribeck drop or a static excess makes the plant stick longer, so that bias sat where
-    those effects act, and the friction laws were named almost at random on such records
-    (2 of 17 right at a near-rest fraction of 0.2 or more).
-
-    σ̂_x is taken from the seed residual at ``theta``, once. Re-estimated from the residual
-    with the rule it comes out smaller and the mask shrinks (visible 3000 N impact on the
-    1 s twin, kicking the plant out of a stop: 390 → 269 samples left out); the samples
-    next to the impact then entered the tests and its score peaked 20 ms late.
+    still evaluates the sliding law ``F_f(v)`` there (``sgn`` of noise); on the marked
+    samples the residual uses the stick/slip rule instead
+    (:meth:`~fricjax.model.system.Model.rest_force`). What happens at those samples, how
+    the plant stops and breaks away, is tested by simulation (output error,
+    :mod:`fricjax.diagnose.simulation_test`), which needs no velocity.
     """
-    rest = near_rest(problem, theta, kappa, sigma_x)
-    if rest is None or not rest.any():
+    if static_level(problem, theta) == 0.0:
         return replace(problem, rest=None)
-    return replace(problem, rest=rest)
+    rest = near_rest_band(problem, sigma_x).mask
+    return replace(problem, rest=rest if rest.any() else None)
 
 
 def with_rest_both(
-    problem: Problem, validation: Problem | None, theta: np.ndarray
+    problem: Problem, validation: Problem | None, theta: np.ndarray, sigma_x: float
 ) -> tuple[Problem, Problem | None]:
-    """The record and its second recording (if any) with their samples at rest marked
-    (:func:`with_rest`): the record by its own σ̂_x at κ = 4, the second recording at
-    :data:`SECOND_RECORDING_KAPPA` with the larger of the two σ̂_x (both from the sliding law
-    on every sample, :func:`~fricjax.diagnose.locate.rest_sigma`), so that it is held at
-    rest wherever the record was."""
+    """The record and its second recording (if any) with their samples near rest marked
+    (:func:`with_rest`), both with the larger of the two recordings' own σ̂_x: a model fitted
+    on the record holds its sliding law only where the record slid, so the second recording
+    is held at rest wherever a band of the record's width would hold it."""
     if validation is None:
-        return with_rest(problem, theta), None
-    sigma = rest_sigma(problem, theta)
-    wide = max(sigma, rest_sigma(validation, theta))
-    return (
-        with_rest(problem, theta, sigma_x=sigma),
-        with_rest(validation, theta, SECOND_RECORDING_KAPPA, wide),
-    )
+        return with_rest(problem, theta, sigma_x), None
+    wide = max(sigma_x, record_noise(validation).sigma_x)
+    return with_rest(problem, theta, sigma_x), with_rest(validation, theta, wide)
 
 
 def _undecimated(problem: Problem | None) -> Problem | None:
@@ -1012,7 +973,9 @@ def diagnose(
     identify_settings = identify_settings or IdentifySettings()
     with clock.stage("base_fit", "base fit: search and refine"):
         run = identify(problem, identify_settings)
-        problem, validation = with_rest_both(problem, validation, run.value)
+        # the scale of every test, from the recording itself (fricjax.diagnose.evidence)
+        evidence = record_noise(problem)
+        problem, validation = with_rest_both(problem, validation, run.value, evidence.sigma_x)
     # The first search fitted the sliding law on the samples at rest too; where the plant
     # sticks often its breakaway bias can hold the base in a poor minimum at the box's
     # edge (asymmetric friction on a 1 s record, 58 % of it near rest: excess whitened RSS
@@ -1044,6 +1007,7 @@ def diagnose(
         n_mc=settings.n_mc,
         seed=settings.seed,
         noise=settings.noise,
+        evidence=evidence,
         confirm=confirm,
         clock=clock,
     )
@@ -1060,9 +1024,9 @@ def diagnose(
                 "simulation_rms_m": simulation_error(problem, *base),
             },
         }
-    rest_share = float(np.mean(problem.rest)) if problem.rest is not None else 0.0
+    band = near_rest_band(problem, evidence.sigma_x)
     chosen_steps = [step for step in sel.steps if step.chosen is not None]
-    findings = [_finding(problem, step, rest_share) | step.heldout for step in chosen_steps]
+    findings = [_finding(problem, step) | step.heldout for step in chosen_steps]
     heldout: dict[str, Any] = {}
     if findings:
         chain = [base, *((st.chosen.model, st.chosen.spec, st.chosen.theta) for st in chosen_steps)]
@@ -1077,21 +1041,14 @@ def diagnose(
         for rf, rep in st.rejected
     ]
     sim = None
-    if (
-        settings.simulation_test
-        and not chosen_steps
-        and (
-            rest_share >= NEAR_REST_CAVEAT
-            or rejected
-            or _unexplained(loc_before, settings.alpha) is not None
-        )
-    ):
+    # Equation error named nothing: the motion itself is asked, by output error, which
+    # needs no velocity and so sees how the plant stops and breaks away. Its own lack-of-fit
+    # test against the record's noise decides whether any candidate is fitted there.
+    if settings.simulation_test and not chosen_steps:
         if clock.over("simulation_test"):
             for effect in SIMULATION_TERMS[settings.simulation_terms]:
                 clock.untested("simulation_test", effect)
         else:
-            # Equation error named nothing where it is blind (long stick phases) or left
-            # a structure unexplained: the friction law is asked of the motion itself.
             with clock.stage("simulation_test", "simulation test: base by output error"):
                 sim = simulation_test(
                     problem,
@@ -1102,11 +1059,12 @@ def diagnose(
                     fraction=settings.heldout,
                     validation=validation,
                     clock=clock,
+                    evidence=evidence,
                 )
         if sim is not None and sim.chosen is not None:
             sel = _with_law(problem, sel, sim.chosen)
             final = (sel.model, sel.spec, sel.theta)
-            findings = [_law_finding(problem, sim, rest_share)]
+            findings = [_law_finding(problem, sim, band)]
     final_pb = with_model(problem, sel.model, sel.spec)
     loc_after: LocateReport | None = None
     locate_note = ""
@@ -1156,11 +1114,11 @@ def diagnose(
         locate_after=loc_after,
         problem=problem,
         base_spec=problem.spec,
+        evidence=evidence,
+        near_rest=band,
         clock=clock,
         extra={
-            "sigma_x_m": sel.sigma,
             "base_identify_ems": run.ems,
-            "near_rest_fraction": rest_share,
             **extra_sim,
             **({"locate_after_skipped": locate_note} if locate_note else {}),
         },
@@ -1183,8 +1141,9 @@ def _with_law(problem: Problem, sel: Selection, law: LawFit) -> Selection:
     return replace(sel, model=model_e, spec=spec_e, theta=theta)
 
 
-def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dict[str, Any]:
-    """The finding of a friction-law term named by simulation (diagnosis.json)."""
+def _law_finding(problem: Problem, sim: SimulationTest, band: NearRest) -> dict[str, Any]:
+    """The finding of a term named by simulation (diagnosis.json); ``band``: the record's
+    near-rest band, which the equation error holds by the stick/slip rule."""
     law = sim.chosen
     assert law is not None
     cand = candidate(law.effect)
@@ -1196,14 +1155,11 @@ def _law_finding(problem: Problem, sim: SimulationTest, near_rest: float) -> dic
         + (
             " Found by simulation: with it the output error of the record's 0.05 s "
             f"simulated segments falls from {law.cost_base:.4g} to {law.fit.cost:.4g} σ_x² "
-            f"({-100 * gain:+.1f} %, LR = {law.lr:.1f}); "
-            + (
-                f"equation error hardly sees it because {100 * near_rest:.0f} % of the "
-                "samples are at or near rest, where how the plant stops and breaks away "
-                "decides."
-                if law.effect in LAWS and near_rest >= NEAR_REST_CAVEAT
-                else "its equation-error signature alone was not significant."
-            )
+            f"({-100 * gain:+.1f} %, LR = {law.lr:.1f}); its equation-error signature "
+            f"alone was not significant ({100 * band.share:.0f} % of the samples lie below "
+            f"{band.speed:.3g} m/s, "
+            "where equation error holds the stick/slip rule and simulation sees how the "
+            "plant stops and breaks away)."
         ),
         "location": cand.location(law.params, problem),
         "params": law.params,
@@ -1233,6 +1189,7 @@ def _simulation_summary(sim: SimulationTest) -> dict[str, Any]:
     term's end) and ``cost_term`` its fit's."""
     return {
         "cost_base": sim.base.cost,
+        "lack_of_fit_p": sim.lack_of_fit_p,
         "candidates": [
             {
                 "effect": f.effect,
@@ -1255,9 +1212,8 @@ def _simulation_summary(sim: SimulationTest) -> dict[str, Any]:
     }
 
 
-def _finding(problem: Problem, step: Any, near_rest: float = 0.0) -> dict[str, Any]:
-    """One finding of diagnosis.json; ``near_rest``: fraction of the samples at or near
-    rest (the whitener's reversal mask), for the caveat on friction-law names."""
+def _finding(problem: Problem, step: Any) -> dict[str, Any]:
+    """One finding of diagnosis.json, named by equation error."""
     chosen = step.chosen
     cand = candidate(chosen.effect)
     out: dict[str, Any] = {
@@ -1279,15 +1235,6 @@ def _finding(problem: Problem, step: Any, near_rest: float = 0.0) -> dict[str, A
     if clash:
         out["near_drive_harmonic"] = clash
         out["explanation"] += drive_harmonic_note(clash)
-    if chosen.effect in NEAR_REST_LAWS and near_rest >= NEAR_REST_CAVEAT:
-        others = [e for e in NEAR_REST_LAWS if e != chosen.effect]
-        out["near_rest_caveat"] = {"near_rest_fraction": near_rest, "confusable_with": others}
-        out["explanation"] += (
-            f" Caution: {100 * near_rest:.0f} % of the samples are at or near rest and left "
-            "out of the tests, so how the plant stops and breaks away is hardly seen; on "
-            f"such records {', '.join(others)} are easily mistaken for this one: read it as "
-            "friction near rest differing from the model."
-        )
     return out
 
 

@@ -15,17 +15,17 @@ same Stribeck term on a 1 s and a 2 s null record: 0.3 and 0.0 in output error.
 
 Test. The base model (equation-error estimate as start) is fitted by output error with
 multiple shooting (:func:`fricjax.output_error.fit_output_error`, costs ``E = Σ r_aug²`` in
-units of ``σ_x²``, σ_x from the third difference of x). Each pointwise catalogue
+units of the record's own ``σ̂_x²``, :mod:`fricjax.diagnose.evidence`). Where that cost
+is within the noise (:func:`lack_of_fit_p` ≥ α) nothing is fitted. Each pointwise catalogue
 candidate of :data:`TERMS` is first scored at that fit (:func:`output_error_score`: the
 linearised LR over the candidate's grid of shape parameters, exact Jacobian of the
 simulation); where the score is significant (p < :data:`SCREEN_P`) its grid maximum
 starts the candidate's fit (term at its null; shape otherwise at the grid's middle), and
-a candidate outside :data:`LAWS` whose score is not significant is not fitted. With
-``ν`` the residual degrees of freedom of the larger fit (``n + 2(S − 1) − (d + k) − 2S``):
+a candidate outside :data:`LAWS` whose score is not significant is not fitted. With the
+costs in units of the record's σ̂_x² (ν degrees of freedom) and k the term's free
+parameters, n the samples:
 
-    LR = (E_base − E_term) / σ̂²,   σ̂² = E_term / ν,   p = P(χ²_k > LR)       k = the term's
-                                                                             free parameters
-    ΔBIC = n·ln(E_base / E_term) − k·ln n                                    n = kept samples
+    LR = E_base − E_term,   p = P(F(k, ν) > LR/k),   ΔBIC = LR − k·ln n
 
 ``E_base`` is the lower of the base's fit and the base refitted from where the term's
 fit ended (LM may stop short of the base's minimum, and the longer descent must not pass
@@ -81,6 +81,7 @@ from jaxtyping import Array, Float, Int
 from scipy import stats
 
 from fricjax.diagnose.catalogue import candidate
+from fricjax.diagnose.evidence import EXACT_DOF, Evidence, record_noise
 from fricjax.diagnose.stages import Clock
 from fricjax.output_error import (
     OutputError,
@@ -88,7 +89,6 @@ from fricjax.output_error import (
     OutputErrorSettings,
     fit_output_error,
     jacobian_at,
-    noise_scale,
     output_error_residual,
 )
 from fricjax.problem import Problem
@@ -129,8 +129,8 @@ class OutputErrorScore:
     """Score (Lagrange-multiplier) test of one candidate in output error at the base fit."""
 
     effect: str
-    stat: float  # max over the grid of r'P_C r / σ̂² [1]
-    p_value: float  # min(1, G·P(χ²_k > stat)): Bonferroni over the G grid points
+    stat: float  # max over the grid of r'P_C r [σ_x²]
+    p_value: float  # min(1, G·P(F(k, ν) > stat/k)): Bonferroni over the G grid points
     k: int  # linear parameters (the statistic's χ² dof)
     grid_size: int
     start: dict[str, float]  # the term's shape parameters at the maximum
@@ -156,7 +156,11 @@ def _term_columns(
 
 
 def output_error_score(
-    problem: Problem, base: OutputErrorFit, effect: str, settings: OutputErrorSettings
+    problem: Problem,
+    base: OutputErrorFit,
+    effect: str,
+    settings: OutputErrorSettings,
+    nu: int = EXACT_DOF,
 ) -> OutputErrorScore:
     """Score test of ``effect`` in output error at the base fit, on the candidate's grid of
     shape parameters (:meth:`~fricjax.diagnose.catalogue.Candidate.grid`).
@@ -166,9 +170,10 @@ def output_error_score(
     jacobian_at`, exact through the simulation) at grid point g, ``C_g`` its columns of β
     [m, k], ``P⊥`` the projection off the base's and the segment states' columns:
 
-        stat_g = r'·P⊥C_g (C_g'P⊥C_g)⁺ C_g'P⊥·r / σ̂²,     σ̂² = E_base/ν
+        stat_g = r'·P⊥C_g (C_g'P⊥C_g)⁺ C_g'P⊥·r        (r in units of the record's σ̂_x)
 
-    (χ²_k under the null for a fixed g, the linearised LR). The grid maximum starts the
+    (``stat_g/k ~ F(k, ν)`` under the null for a fixed g, the linearised LR, ν the degrees
+    of freedom of σ̂_x², :mod:`fricjax.diagnose.evidence`). The grid maximum starts the
     candidate's fit; its Bonferroni p screens the candidate (:data:`SCREEN_P`). Costs one
     Jacobian (the compilation the candidate's fit reuses) and k forward tangents per grid
     point, all grid points in one vectorised call (:func:`_term_columns`).
@@ -193,8 +198,6 @@ def output_error_score(
         else np.zeros((1, 0))
     )
     others = [i for i in range(len(names)) if i not in lin and i not in nl]
-    nu = max(base.n_residual - problem.spec.n_free - 2 * base.n_segments, 1)
-    sigma2 = base.cost / nu
     # r and the base's and states' columns do not depend on the term's shape at β = 0:
     # one Jacobian (the compilation the candidate's fit reuses), then the β columns of
     # every grid point at once
@@ -212,16 +215,15 @@ def output_error_score(
     )  # [G, m, k]
     cols = cols - np.einsum("mb,gbk->gmk", basis, np.einsum("mb,gmk->gbk", basis, cols))
     b_g = np.einsum("gmk,m->gk", cols, r)
-    stats_g = (
-        np.einsum("gk,gkl,gl->g", b_g, np.linalg.pinv(np.einsum("gmk,gml->gkl", cols, cols)), b_g)
-        / sigma2
+    stats_g = np.einsum(
+        "gk,gkl,gl->g", b_g, np.linalg.pinv(np.einsum("gmk,gml->gkl", cols, cols)), b_g
     )
     best = int(np.argmax(stats_g))
     k = len(lin)
     return OutputErrorScore(
         effect=effect,
         stat=float(stats_g[best]),
-        p_value=float(min(1.0, G * stats.chi2.sf(stats_g[best], k))),
+        p_value=float(min(1.0, G * stats.f.sf(stats_g[best] / max(k, 1), k, nu))) if k else 1.0,
         k=k,
         grid_size=G,
         start={name: float(grid[name][best]) for name in grid},
@@ -235,7 +237,7 @@ class LawFit:
     effect: str
     problem: Problem  # the record with base + term
     fit: OutputErrorFit
-    lr: float  # (E_base − E_term)/σ̂² [1]
+    lr: float  # E_base − E_term [σ_x²]
     p_value: float
     delta_bic: float
     k: int  # the term's free parameters
@@ -258,25 +260,37 @@ class SimulationTest:
     scores: list[OutputErrorScore] = field(default_factory=list)  # every candidate's
     heldout: dict[str, float] = field(default_factory=dict)
     rejected: list[tuple[LawFit, dict[str, float]]] = field(default_factory=list)
+    # p of the base's output-error cost against the record's noise (lack_of_fit_p); at or
+    # above alpha no candidate is fitted
+    lack_of_fit_p: float = 0.0
 
 
 def _judge(
-    problem: Problem, ext: Problem, fit: OutputErrorFit, e_base: float
+    problem: Problem, ext: Problem, fit: OutputErrorFit, e_base: float, nu: int
 ) -> tuple[float, float, float, int]:
-    """(LR, p, ΔBIC, k) of the term fit ``fit`` against the base cost ``e_base``."""
+    """(LR, p, ΔBIC, k) of the term fit ``fit`` against the base cost ``e_base`` [σ_x²]: the
+    costs are in units of the record's own σ̂_x², so ``LR = E_base − E_term`` with
+    ``LR/k ~ F(k, ν)`` and the BIC of a known variance, ``ΔBIC = LR − k·ln n``."""
     k = ext.spec.n_free - problem.spec.n_free
     n = problem.n
     # LM never ends above its start and the start is the base optimum with the term at its
     # null, so the nested fit is never worse than the base up to the solver's tolerance
     e_term = min(fit.cost, e_base)
-    nu = max(fit.n_residual - ext.spec.n_free - 2 * fit.n_segments, 1)
-    lr = (e_base - e_term) / (e_term / nu)
+    lr = e_base - e_term
     return (
         float(lr),
-        float(stats.chi2.sf(lr, k)),
-        float(n * np.log(e_base / e_term) - k * np.log(n)),
+        float(stats.f.sf(lr / max(k, 1), max(k, 1), nu)),
+        float(lr - k * np.log(n)),
         k,
     )
+
+
+def lack_of_fit_p(base: OutputErrorFit, n_free: int, nu: int) -> float:
+    """p of the base's output-error cost against the record's own noise: ``E_base`` [σ_x²]
+    over its ``ν_r = n_residual − d − 2S`` residual degrees of freedom (d parameters, S
+    segments' two states) follows ``F(ν_r, ν)`` when the base is right."""
+    dof = max(base.n_residual - n_free - 2 * base.n_segments, 1)
+    return float(stats.f.sf(base.cost / dof, dof, nu))
 
 
 def law_fit(
@@ -286,6 +300,7 @@ def law_fit(
     settings: OutputErrorSettings,
     nonlinear: Mapping[str, float] | None = None,
     bars: tuple[float, float] | None = None,
+    nu: int = EXACT_DOF,
 ) -> LawFit:
     """Base + the candidate ``effect`` fitted by output error from the base's optimum (term
     at its null, shape parameters at ``nonlinear``, else at their grid middle), with its
@@ -299,7 +314,7 @@ def law_fit(
     states = (base.states_x, base.states_v)
     fit = fit_output_error(ext, dict(base.params), settings, states)
     e_base, best = base.cost, base
-    lr, p, dbic, k = _judge(problem, ext, fit, e_base)
+    lr, p, dbic, k = _judge(problem, ext, fit, e_base, nu)
     rebased = bars is None or (p < bars[0] and dbic > bars[1])
     if rebased:
         # LM may stop short of the base's own minimum (its step limit): the ratio is taken
@@ -308,7 +323,7 @@ def law_fit(
         again = fit_output_error(problem, dict(fit.params), settings, (fit.states_x, fit.states_v))
         best = again if again.cost < base.cost else base
         e_base = best.cost
-        lr, p, dbic, k = _judge(problem, ext, fit, e_base)
+        lr, p, dbic, k = _judge(problem, ext, fit, e_base, nu)
     return LawFit(
         effect=effect,
         problem=ext,
@@ -455,6 +470,7 @@ def simulation_test(
     settings: OutputErrorSettings | None = None,
     validation: Problem | None = None,
     clock: Clock | None = None,
+    evidence: Evidence | None = None,
 ) -> SimulationTest:
     """Test the pointwise candidates ``effects`` by output error on ``problem`` (base model,
     ``start`` its equation-error estimate by name): module docstring. With ``validation``
@@ -465,11 +481,16 @@ def simulation_test(
     that judges it. ``clock``: the diagnosis' time limits (stage ``simulation_test``); a
     candidate a limit leaves unfitted or unchecked is recorded there as not tested."""
     clock = clock or Clock()
+    evidence = evidence or record_noise(problem)
     settings = settings or OutputErrorSettings(segment_s=SEGMENT_S)
-    if not settings.x_scale:
-        settings = settings._replace(x_scale=noise_scale(np.asarray(problem.x)))
+    # costs in units of the record's own σ̂_x² (fricjax.diagnose.evidence)
+    settings = settings._replace(x_scale=evidence.sigma_x)
     problem = replace(problem, rest=None)
     base = fit_output_error(problem, start, settings)
+    lof = lack_of_fit_p(base, problem.spec.n_free, evidence.nu)
+    if lof >= alpha:
+        # the base already simulates the record to within its noise: nothing to name
+        return SimulationTest(base=base, fits=[], chosen=None, lack_of_fit_p=lof)
     applicable = [e for e in effects if candidate(e).applicable(problem.model, problem.spec)]
     limit = alpha / max(len(effects), 1)
     fits, scores = [], []
@@ -481,18 +502,24 @@ def simulation_test(
         # A friction law is always fitted from its grid's middle: at stops and breakaways
         # the motion is not linear in it, and its score there is no guide (measured: p = 1
         # on records where its fit gains LR > 100).
-        score = None if effect in LAWS else output_error_score(problem, base, effect, settings)
+        score = (
+            None
+            if effect in LAWS
+            else output_error_score(problem, base, effect, settings, evidence.nu)
+        )
         if score is not None:
             scores.append(score)
             if score.p_value >= SCREEN_P:
                 continue
         nonlinear = score.start if score is not None else None
-        fits.append(law_fit(problem, base, effect, settings, nonlinear, (limit, min_delta_bic)))
+        fits.append(
+            law_fit(problem, base, effect, settings, nonlinear, (limit, min_delta_bic), evidence.nu)
+        )
     passing = sorted(
         (f for f in fits if f.p_value < limit and f.delta_bic > min_delta_bic),
         key=lambda f: -f.delta_bic,
     )
-    out = SimulationTest(base=base, fits=fits, chosen=None, scores=scores)
+    out = SimulationTest(base=base, fits=fits, chosen=None, scores=scores, lack_of_fit_p=lof)
     for law in passing:
         if clock.over("simulation_test"):
             clock.untested("simulation_test", law.effect)
