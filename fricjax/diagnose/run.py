@@ -28,7 +28,13 @@ from fricjax.diagnose.catalogue import (
     near_drive_harmonic,
     ranges,
 )
-from fricjax.diagnose.evidence import Evidence, NearRest, near_rest_band, record_noise
+from fricjax.diagnose.evidence import (
+    FLIP_KAPPA,
+    Evidence,
+    NearRest,
+    near_rest_band,
+    record_noise,
+)
 from fricjax.diagnose.locate import (
     NOISE_MODELS,
     LocateReport,
@@ -732,6 +738,25 @@ def heldout_judged(finding: dict[str, Any]) -> dict[str, float]:
     return judged
 
 
+#: A finding's relative gains on the record itself: its EMS [N²] and its simulation error
+#: [m] (:func:`record_gains`).
+RECORD_KEYS = ("record_ems_gain", "record_simulation_gain")
+
+
+def record_gains(
+    problem: Problem,
+    before: tuple[Model, ParamSpec, np.ndarray],
+    after: tuple[Model, ParamSpec, np.ndarray],
+) -> tuple[float, float]:
+    """(``1 − EMS_after/EMS_before``, ``1 − sim_after/sim_before``) on the whole record: the
+    relative fall of the mean squared force residual and of the simulation error
+    (:func:`simulation_error`, NaN where a model cannot be simulated; then that gain is
+    NaN and does not judge)."""
+    ems = [with_model(problem, m, s).ems(th) for m, s, th in (before, after)]
+    sim = [simulation_error(problem, m, s, th) for m, s, th in (before, after)]
+    return 1 - ems[1] / ems[0], 1 - sim[1] / sim[0]
+
+
 class Confirm:
     """``confirm`` of :func:`~fricjax.diagnose.select.forward_select`: a candidate must gain
     in every held-out check whose test part reaches its place (the second recording when
@@ -766,7 +791,12 @@ class Confirm:
                 for second in self.seconds
             ]
         place = candidate(refit.effect).location(refit.params, self.problem)
-        report: dict[str, Any] = {}
+        gains = record_gains(self.problem, current, (refit.model, refit.spec, refit.theta))
+        report: dict[str, Any] = dict(zip(RECORD_KEYS, gains, strict=True))
+        if not all(g > 0 for g in gains if math.isfinite(g)):
+            # the judge's rule (b): a finding must improve the fit the user sees
+            report["heldout_confirmed"] = False
+            return False, report
         for (gain_key, why_key), judge in zip(HELDOUT_KEYS, self.judges, strict=False):
             # A local finding whose place the test part never reaches cannot be judged
             # there: its "gain" is only the base parameters' extrapolation (a bump at
@@ -842,9 +872,22 @@ def _own(current: tuple[Model, ParamSpec, np.ndarray], refit: Any) -> list[str]:
 
 def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dict[str, Any]:
     """``unexplained`` at the place of a candidate that passed the tests on the record but
-    not the held-out check."""
+    not the judge: it worsened the record's own EMS or simulation, or the held-out check."""
     location = candidate(refit.effect).location(refit.params, problem)
-    gain = min(heldout_judged(report).values())
+    judged = heldout_judged(report)
+    if judged:
+        why = (
+            f"that term made the fit on held-out data worse ({100 * min(judged.values()):+.1f} "
+            "%), so it is not claimed: no catalogue term explains this structure in a way "
+            "that carries over to data the fit has not seen."
+        )
+    else:
+        why = (
+            "with that term the record's own "
+            f"{'EMS' if report.get(RECORD_KEYS[0], 1.0) <= 0 else 'simulation error'} got "
+            "worse, so it is not claimed: a term that explains the test statistic at the "
+            "cost of the fit a user sees stands in for something else."
+        )
     clash = _drive_clash(problem, refit)
     where_ = "; ".join(
         f"{k} [{float(v[0]):.4g}, {float(v[1]):.4g}]"
@@ -857,9 +900,8 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
         "explanation": (
             f"The residual is significantly structured ({where_}). Fitted as "
             f"{refit.effect} it lowers BIC by {refit.delta_bic:.1f} on the whole record, but "
-            f"that term made the fit on held-out data worse ({100 * gain:+.1f} %), so it is "
-            "not claimed: no catalogue term explains this structure in a way that carries "
-            "over to data the fit has not seen." + (drive_harmonic_note(clash) if clash else "")
+            + why
+            + (drive_harmonic_note(clash) if clash else "")
         ),
         "location": location,
         "params": {},
@@ -872,7 +914,7 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
             **{
                 k: v
                 for k, v in report.items()
-                if k.startswith("heldout_") and k != "heldout_confirmed"
+                if (k.startswith("heldout_") and k != "heldout_confirmed") or k in RECORD_KEYS
             },
         },
     }
@@ -911,7 +953,9 @@ def _figures(
     return {"ems": pb.ems(theta), "bic": b, "rss_whitened": rss}
 
 
-def with_rest(problem: Problem, theta: np.ndarray, sigma_x: float) -> Problem:
+def with_rest(
+    problem: Problem, theta: np.ndarray, sigma_x: float, kappa: float = FLIP_KAPPA
+) -> Problem:
     """``problem`` with its samples near rest marked (:attr:`Problem.rest`): ``|v| < κ·σ_v``
     with the record's own σ̂_x ``sigma_x`` [m] (:func:`~fricjax.diagnose.evidence.
     near_rest_band`), the samples the whitener leaves out of every equation-error test;
@@ -927,7 +971,7 @@ def with_rest(problem: Problem, theta: np.ndarray, sigma_x: float) -> Problem:
     """
     if static_level(problem, theta) == 0.0:
         return replace(problem, rest=None)
-    rest = near_rest_band(problem, sigma_x).mask
+    rest = near_rest_band(problem, sigma_x, kappa).mask
     return replace(problem, rest=rest if rest.any() else None)
 
 
@@ -935,13 +979,20 @@ def with_rest_both(
     problem: Problem, validation: Problem | None, theta: np.ndarray, sigma_x: float
 ) -> tuple[Problem, Problem | None]:
     """The record and its second recording (if any) with their samples near rest marked
-    (:func:`with_rest`), both with the larger of the two recordings' own σ̂_x: a model fitted
-    on the record holds its sliding law only where the record slid, so the second recording
-    is held at rest wherever a band of the record's width would hold it."""
+    (:func:`with_rest`): the record by its own σ̂_x, the second by the larger of the two
+    recordings' σ̂_x and a band ``1 + √2`` times as wide.
+
+    Why. A model fitted on the record holds its sliding law only where the record slid, so
+    the second recording must be held at rest wherever the record was. Of the same motion,
+    the two velocities differ by their noise, ``v₂ − v₁ ~ N(0, 2σ_v²)``, which exceeds
+    ``κ·√2·σ_v`` with the same per-sample probability 2·(1 − Φ(κ)) as a flip outside the
+    band; so a sample the record holds (``|v₁| < κσ_v``) lies in the second's band
+    ``|v₂| < κ(1 + √2)σ_v`` but with that probability."""
     if validation is None:
         return with_rest(problem, theta, sigma_x), None
     wide = max(sigma_x, record_noise(validation).sigma_x)
-    return with_rest(problem, theta, sigma_x), with_rest(validation, theta, wide)
+    second = with_rest(validation, theta, wide, FLIP_KAPPA * (1.0 + math.sqrt(2.0)))
+    return with_rest(problem, theta, sigma_x), second
 
 
 def _undecimated(problem: Problem | None) -> Problem | None:
@@ -1062,9 +1113,21 @@ def diagnose(
                     evidence=evidence,
                 )
         if sim is not None and sim.chosen is not None:
-            sel = _with_law(problem, sel, sim.chosen)
-            final = (sel.model, sel.spec, sel.theta)
-            findings = [_law_finding(problem, sim, band)]
+            law_sel = _with_law(problem, sel, sim.chosen)
+            law_final = (law_sel.model, law_sel.spec, law_sel.theta)
+            gains = record_gains(problem, base, law_final)
+            if all(g > 0 for g in gains if math.isfinite(g)):
+                sel, final = law_sel, law_final
+                findings = [
+                    _law_finding(problem, sim, band) | dict(zip(RECORD_KEYS, gains, strict=True))
+                ]
+            else:
+                # the same rule as for equation error: not named where the fit a user
+                # sees gets worse
+                sim.rejected.append(
+                    (sim.chosen, {**sim.heldout, **dict(zip(RECORD_KEYS, gains, strict=True))})
+                )
+                sim.chosen = None
     final_pb = with_model(problem, sel.model, sel.spec)
     loc_after: LocateReport | None = None
     locate_note = ""
