@@ -574,11 +574,21 @@ class Candidate:
     parameters (Fs, vs, Fc, Fv) bend towards it, so at the base optimum its one-step score
     sees little of what a refit recovers, and forward selection tests it by the likelihood
     ratio of a refit instead (:func:`fricjax.diagnose.select.forward_select`).
+
+    ``simulable = True``: a pointwise force the simulator integrates, so the output-error
+    test (:mod:`fricjax.diagnose.simulation_test`) can offer it (not a stateful presliding
+    lag; not the Stribeck shape exponent, whose output-error signature is a Stribeck
+    drop's). ``by_simulation = True``: a friction law the output-error test offers by
+    default and fits from its grid's middle without a screening score (at stops and
+    breakaways the motion is not linear in it, so its score is no guide); the other
+    simulable entries compete only with ``simulation_terms = "all"``, screened by score.
     """
 
     effect: str = ""
     local: ClassVar[bool] = False
     by_refit: ClassVar[bool] = False
+    simulable: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = False
 
     # structure ----------------------------------------------------------------------------
     def term(self, problem: Problem) -> Term | None:
@@ -689,6 +699,7 @@ class StribeckCandidate(_TermCandidate):
 
     effect: str = "stribeck"
     by_refit: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = GaussianStribeck
 
@@ -728,6 +739,7 @@ class StribeckShapeCandidate(_TermCandidate):
 
     effect: str = "stribeck_shape"
     by_refit: ClassVar[bool] = True
+    simulable: ClassVar[bool] = False
     local: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = StribeckShape
@@ -768,6 +780,7 @@ class AsymmetricCandidate(_TermCandidate):
 
     effect: str = "asymmetric_friction"
     by_refit: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = AsymmetricFriction
 
@@ -803,6 +816,7 @@ class QuadraticDragCandidate(_TermCandidate):
 
     effect: str = "quadratic_drag"
     by_refit: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = QuadraticDrag
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
@@ -841,6 +855,7 @@ class PreslidingCandidate(_TermCandidate):
     # (they were unexplained, and quadratic drag); on the 24 null records of those lengths
     # the ratio's calibrated p ranged 0.0125-0.77 and nothing was named.
     by_refit: ClassVar[bool] = True
+    simulable: ClassVar[bool] = False
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
         return (_amplitude("presl_A", "N", AMPLITUDE_FACTOR * force_scale(problem)),)
@@ -1215,6 +1230,18 @@ CATALOGUE: tuple[Candidate, ...] = (
     FrictionDriftCandidate(),
     MassErrorCandidate(),
 )
+
+
+def simulation_candidates(which: str) -> tuple[str, ...]:
+    """The effects the output-error test offers: ``"laws"`` the entries marked
+    ``by_simulation``, ``"all"`` every ``simulable`` one (:class:`Candidate`)."""
+    if which == "laws":
+        return tuple(c.effect for c in CATALOGUE if c.by_simulation)
+    return tuple(c.effect for c in CATALOGUE if c.simulable)
+
+
+#: Values of ``DiagnoseSettings.simulation_terms`` (:func:`simulation_candidates`).
+SIMULATION_SETS = ("laws", "all")
 
 
 def candidate(effect: str) -> Candidate:

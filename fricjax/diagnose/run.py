@@ -23,10 +23,12 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.diagnose.catalogue import (
+    SIMULATION_SETS,
     candidate,
     drive_harmonic_note,
     near_drive_harmonic,
     ranges,
+    simulation_candidates,
 )
 from fricjax.diagnose.evidence import (
     FLIP_KAPPA,
@@ -55,8 +57,6 @@ from fricjax.diagnose.select import (
     whitened_residual,
 )
 from fricjax.diagnose.simulation_test import (
-    LAWS,
-    TERMS,
     LawFit,
     SimulationTest,
     simulation_test,
@@ -70,8 +70,6 @@ from fricjax.params import ParamSpec
 from fricjax.problem import Problem
 from fricjax.refine import RefineSettings, refine
 
-# the candidates the simulation test offers, by DiagnoseSettings.simulation_terms
-SIMULATION_TERMS = {"laws": LAWS, "all": TERMS}
 # Time limits [s] of a diagnosis (DiagnoseSettings docstring).
 TIME_LIMIT = 180.0
 STAGE_LIMITS = {
@@ -158,8 +156,8 @@ class DiagnoseSettings:
             "simulation_test": (bool, lambda v: True, "true or false"),
             "simulation_terms": (
                 str,
-                lambda v: v in SIMULATION_TERMS,
-                f"one of {', '.join(SIMULATION_TERMS)}",
+                lambda v: v in SIMULATION_SETS,
+                f"one of {', '.join(SIMULATION_SETS)}",
             ),
             "time_limit": (float, lambda v: v > 0, "> 0 seconds (inf: none)"),
             "stage_limits": (
@@ -1097,14 +1095,14 @@ def diagnose(
     # test against the record's noise decides whether any candidate is fitted there.
     if settings.simulation_test and not chosen_steps:
         if clock.over("simulation_test"):
-            for effect in SIMULATION_TERMS[settings.simulation_terms]:
+            for effect in simulation_candidates(settings.simulation_terms):
                 clock.untested("simulation_test", effect)
         else:
             with clock.stage("simulation_test", "simulation test: base by output error"):
                 sim = simulation_test(
                     problem,
                     problem.spec.as_dict(sel.base_theta),
-                    effects=SIMULATION_TERMS[settings.simulation_terms],
+                    effects=simulation_candidates(settings.simulation_terms),
                     alpha=settings.alpha,
                     min_delta_bic=settings.min_delta_bic,
                     fraction=settings.heldout,

@@ -15,15 +15,15 @@ same Stribeck term on a 1 s and a 2 s null record: 0.3 and 0.0 in output error.
 
 Test. The base model (equation-error estimate as start) is fitted by output error with
 multiple shooting (:func:`fricjax.output_error.fit_output_error`, costs ``E = Σ r_aug²`` in
-units of the record's own ``σ̂_x²``, :mod:`fricjax.diagnose.evidence`). Where that cost
-is within the noise (:func:`lack_of_fit_p` ≥ α) nothing is fitted. Each pointwise catalogue
-candidate of :data:`TERMS` is first scored at that fit (:func:`output_error_score`: the
-linearised LR over the candidate's grid of shape parameters, exact Jacobian of the
-simulation); where the score is significant (p < :data:`SCREEN_P`) its grid maximum
-starts the candidate's fit (term at its null; shape otherwise at the grid's middle), and
-a candidate outside :data:`LAWS` whose score is not significant is not fitted. With the
-costs in units of the record's σ̂_x² (ν degrees of freedom) and k the term's free
-parameters, n the samples:
+units of the record's own ``σ̂_x²``, :mod:`fricjax.diagnose.evidence`). Where that cost is
+within the noise (:func:`lack_of_fit_p` ≥ α) nothing is fitted. Each pointwise catalogue
+candidate of :func:`~fricjax.diagnose.catalogue.simulation_candidates` (``"all"``) is first
+scored at that fit (:func:`output_error_score`: the linearised LR over the candidate's grid
+of shape parameters, exact Jacobian of the simulation); where the score is significant (p <
+:data:`SCREEN_P`) its grid maximum starts the candidate's fit (term at its null; shape
+otherwise at the grid's middle), and a candidate outside the ``by_simulation`` entries whose
+score is not significant is not fitted. With the costs in units of the record's σ̂_x² (ν
+degrees of freedom) and k the term's free parameters, n the samples:
 
     LR = E_base − E_term,   p = P(F(k, ν) > LR/k),   ΔBIC = LR − k·ln n
 
@@ -35,7 +35,7 @@ base's fit: when the base misfits the record by far, which law wins is decided b
 each LM descent ends, and starting later candidates from a base refitted for an earlier
 one turned a correct name into a wrong one (1 s asymmetry at c = 9, named ``stribeck``)
 and a record without a finding into a wrong name (0.272 s periodic force).
-A candidate is named when ``p < α / len(TERMS)`` and ``ΔBIC > min_delta_bic`` (the
+A candidate is named when ``p < α / len(effects)`` and ``ΔBIC > min_delta_bic`` (the
 selection's own bars), the best by ΔBIC first, and when it also improves the held-out
 check in the same metric: base and base + term are fitted on the training part and then
 simulated over the test part with their parameters fixed (only the segment states are
@@ -51,20 +51,20 @@ presliding lag gained +30.6 % on a second 0.272 s ram and lost 157 % on the reco
 last part, another part of the motion). A stateful term (presliding lag) is not tested here:
 the simulator integrates pointwise forces only.
 
-Which candidates. By default the friction laws (:data:`LAWS`), fitted from their grid's
-middle. ``effects`` = :data:`TERMS` lets every pointwise catalogue term compete, each
-started at the maximum of its output-error score and fitted only where that score is
-significant. That was built to stop the laws soaking up what the base cannot follow (on
-the concealed benchmark at e683942 a bump, a drift and a presliding lag on 0.272 s
-records and one 2 s null were named ``stribeck``), and it is not the default because it
-did not. Measured on 10 such benchmark records (eight 0.272 s, one 1 s, one 2 s; that
-variant also started later candidates from a base refitted for earlier ones, and on nine
-of the records the laws at their score maximum): two wrong or false names became
-none, four wrong names stayed (a drift, a presliding lag, two asymmetries), two records
-without a finding (periodic forces, 0.272 s) got wrong names (``stribeck``,
-``friction_drift``), one correct name and one miss stayed; a 0.272 s record took up to
-8 min instead of 1. On such short records the base's misfit in
-output error is many noise levels and any flexible term explains part of it.
+Which candidates. By default the friction laws (the ``by_simulation`` entries), fitted from
+their grid's middle. ``effects`` = :func:`~fricjax.diagnose.catalogue.simulation_candidates`
+(``"all"``) lets every pointwise catalogue term compete, each started at the maximum of its
+output-error score and fitted only where that score is significant. That was built to stop
+the laws soaking up what the base cannot follow (on the concealed benchmark at e683942 a
+bump, a drift and a presliding lag on 0.272 s records and one 2 s null were named
+``stribeck``), and it is not the default because it did not. Measured on 10 such benchmark
+records (eight 0.272 s, one 1 s, one 2 s; that variant also started later candidates from a
+base refitted for earlier ones, and on nine of the records the laws at their score maximum):
+two wrong or false names became none, four wrong names stayed (a drift, a presliding lag,
+two asymmetries), two records without a finding (periodic forces, 0.272 s) got wrong names
+(``stribeck``, ``friction_drift``), one correct name and one miss stayed; a 0.272 s record
+took up to 8 min instead of 1. On such short records the base's misfit in output error is
+many noise levels and any flexible term explains part of it.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 from scipy import stats
 
-from fricjax.diagnose.catalogue import candidate
+from fricjax.diagnose.catalogue import candidate, simulation_candidates
 from fricjax.diagnose.evidence import EXACT_DOF, Evidence, record_noise
 from fricjax.diagnose.stages import Clock
 from fricjax.output_error import (
@@ -93,20 +93,6 @@ from fricjax.output_error import (
 )
 from fricjax.problem import Problem
 
-# The friction-law candidates (those equation error is blind to near rest).
-LAWS = ("stribeck", "asymmetric_friction", "quadratic_drag")
-# Every catalogue candidate the simulator can integrate (pointwise forces). The Stribeck
-# shape exponent is left out: in output error its signature is that of a Stribeck drop.
-TERMS = (
-    *LAWS,
-    "position_bump",
-    "position_periodic",
-    "impact",
-    "extra_harmonic",
-    "friction_drift",
-    "mass_error",
-)
-
 # Segment length of the multiple shooting [s]. From the equation-error estimate, where
 # the base has absorbed what it cannot model by moving far from the plant's values, the
 # default 0.5 s segments left LM in a poor minimum (1 s record, hidden Stribeck drop:
@@ -115,8 +101,8 @@ TERMS = (
 SEGMENT_S = 0.05
 
 
-# A candidate outside :data:`LAWS` is fitted only when its output-error score test (grid
-# maximum, Bonferroni over the grid) has p below this: a location, a frequency or a drift
+# A candidate not marked ``by_simulation`` is fitted only when its output-error score test
+# (grid maximum, Bonferroni over the grid) has p below this: a location, a frequency or a drift
 # changes the motion smoothly, so the linearised test sees what a fit would find, and most
 # candidates on a record without them cost one Jacobian per grid point instead of two
 # fits. The friction laws act at stops and breakaways, where the motion is not linear in
@@ -463,7 +449,7 @@ def simulation_test(
     problem: Problem,
     start: dict[str, float],
     *,
-    effects: Sequence[str] = LAWS,
+    effects: Sequence[str] | None = None,
     alpha: float = 0.01,
     min_delta_bic: float = 10.0,
     fraction: float = 0.3,
@@ -481,6 +467,7 @@ def simulation_test(
     that judges it. ``clock``: the diagnosis' time limits (stage ``simulation_test``); a
     candidate a limit leaves unfitted or unchecked is recorded there as not tested."""
     clock = clock or Clock()
+    effects = simulation_candidates("laws") if effects is None else effects
     evidence = evidence or record_noise(problem)
     settings = settings or OutputErrorSettings(segment_s=SEGMENT_S)
     # costs in units of the record's own σ̂_x² (fricjax.diagnose.evidence)
@@ -504,7 +491,7 @@ def simulation_test(
         # on records where its fit gains LR > 100).
         score = (
             None
-            if effect in LAWS
+            if candidate(effect).by_simulation
             else output_error_score(problem, base, effect, settings, evidence.nu)
         )
         if score is not None:

@@ -14,9 +14,9 @@ import fricjax.diagnose.catalogue as cat
 import fricjax.diagnose.simulation_test as simulation_test_module
 from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
+from fricjax.diagnose.catalogue import simulation_candidates
 from fricjax.diagnose.run import _law_finding
 from fricjax.diagnose.simulation_test import (
-    LAWS,
     SCREEN_P,
     SEGMENT_S,
     LawFit,
@@ -71,7 +71,7 @@ def test_no_friction_law_is_significant_on_a_null_record(outcomes: dict[str, Any
     assert sim.chosen is None and not sim.rejected
     assert [f.effect for f in sim.fits] == list(TESTED)
     for f in sim.fits:
-        assert f.p_value > 0.01 / len(LAWS), f.effect
+        assert f.p_value > 0.01 / len(simulation_candidates("laws")), f.effect
         assert f.delta_bic < 0, f.effect
 
 
