@@ -20,7 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from fricjax.data.preprocess import noise_gains
-from fricjax.diagnose.run import CV_FOLDS, CV_FOLDS_KEY, FROZEN_KEY, SPLIT_DEFERS, SPLIT_FROZEN
+from fricjax.diagnose.run import (
+    CV_FOLDS,
+    CV_FOLDS_KEY,
+    FROZEN_KEY,
+    SPLIT_DEFERS,
+    SPLIT_FROZEN,
+    on_bound,
+)
 from fricjax.io.atomic import write_text_atomic
 from fricjax.params import ParamSpec
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
@@ -29,10 +36,6 @@ from fricjax.report.tables import fmt
 
 if TYPE_CHECKING:
     from fricjax.diagnose.run import Diagnosis
-
-# A parameter within this fraction of its search range from a bound is "on the bound".
-BOUND_TOL = 1e-3
-
 
 # -- numbers the report and its figures share ---------------------------------------------
 
@@ -80,20 +83,6 @@ def _spec_of(diag: Diagnosis, name: str) -> ParamSpec | None:
     for st in diag.selection.steps:
         specs += [r.spec for r in st.refits] + [r.spec for r, _ in st.rejected]
     return next((s for s in specs if name in s.names), None)
-
-
-def on_bound(spec: ParamSpec | None, name: str, value: float) -> str:
-    """``"lower"``/``"upper"`` where ``value`` sits on that bound of ``name``'s search
-    range (within :data:`BOUND_TOL` of it), else ``""``."""
-    if spec is None or name not in spec.names or not spec[name].free:
-        return ""
-    p = spec[name]
-    tol = BOUND_TOL * (p.upper - p.lower)
-    if value <= p.lower + tol:
-        return "lower"
-    if value >= p.upper - tol:
-        return "upper"
-    return ""
 
 
 def base_on_bounds(diag: Diagnosis) -> list[tuple[str, float, str, float, str]]:

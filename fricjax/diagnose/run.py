@@ -247,6 +247,30 @@ class Diagnosis:
         )
 
 
+# A parameter within this fraction of its search range from a bound is "on the bound".
+BOUND_TOL = 1e-3
+
+
+def on_bound(spec: ParamSpec | None, name: str, value: float) -> str:
+    """``"lower"``/``"upper"`` where ``value`` sits on that bound of ``name``'s search
+    range (within :data:`BOUND_TOL` of it), else ``""``."""
+    if spec is None or name not in spec.names or not spec[name].free:
+        return ""
+    p = spec[name]
+    tol = BOUND_TOL * (p.upper - p.lower)
+    if value <= p.lower + tol:
+        return "lower"
+    if value >= p.upper - tol:
+        return "upper"
+    return ""
+
+
+def at_bounds(spec: ParamSpec, params: dict[str, float]) -> dict[str, str]:
+    """``{name: "lower"|"upper"}`` for each of a finding's ``params`` that sits on a bound
+    of its search range (:func:`on_bound`): a limit the fit ran into, not a measurement."""
+    return {n: side for n, v in params.items() if (side := on_bound(spec, n, float(v)))}
+
+
 def _jsonable(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
@@ -1224,6 +1248,7 @@ def _law_finding(problem: Problem, sim: SimulationTest, band: NearRest) -> dict[
         ),
         "location": cand.location(law.params, problem),
         "params": law.params,
+        "at_bound": at_bounds(law.problem.spec, law.params),
         "delta_bic": law.delta_bic,
         "p_value": law.p_value,
         "test": "output error",
@@ -1282,6 +1307,7 @@ def _finding(problem: Problem, step: Any) -> dict[str, Any]:
         "explanation": cand.explain(chosen.params, problem),
         "location": cand.location(chosen.params, problem),
         "params": chosen.params,
+        "at_bound": at_bounds(chosen.spec, chosen.params),
         "delta_bic": chosen.delta_bic,
         "p_value": step.p_value,
     }

@@ -18,10 +18,10 @@ from fricjax.diagnose.report import (
     fit_rows,
     fit_sentence,
     length,
-    on_bound,
     params_text,
     where_text,
 )
+from fricjax.diagnose.run import at_bounds, on_bound
 from fricjax.params import Param, ParamSpec
 from fricjax.report.document import Heading, Image, Para, Table, to_html, to_markdown
 from fricjax.report.plots import plt, save
@@ -72,6 +72,9 @@ def test_a_parameter_on_its_bound_is_named_as_such() -> None:
     assert on_bound(spec, "mass_eps", 0.29) == ""
     fixed = ParamSpec((Param("mass", "kg", 45.0, 45.0, 45.0, free=False),))
     assert on_bound(fixed, "mass", 45.0) == ""  # a fixed value is given, not fitted
+    # diagnosis.json flags a finding's parameters on a bound as such
+    assert at_bounds(spec, {"mass_eps": 0.3}) == {"mass_eps": "upper"}
+    assert at_bounds(spec, {"mass_eps": 0.1}) == {}
 
 
 def test_a_finding_size_on_its_bound_is_reported_as_a_limit_with_its_range() -> None:
