@@ -575,19 +575,16 @@ class Candidate:
     sees little of what a refit recovers, and forward selection tests it by the likelihood
     ratio of a refit instead (:func:`fricjax.diagnose.select.forward_select`).
 
-    ``simulable = True``: a pointwise force the simulator integrates, so the output-error
-    test (:mod:`fricjax.diagnose.simulation_test`) can offer it (not a stateful presliding
-    lag; not the Stribeck shape exponent, whose output-error signature is a Stribeck
-    drop's). ``by_simulation = True``: a friction law the output-error test offers by
-    default and fits from its grid's middle without a screening score (at stops and
-    breakaways the motion is not linear in it, so its score is no guide); the other
-    simulable entries compete only with ``simulation_terms = "all"``, screened by score.
+    ``by_simulation = True``: a friction law that the output-error test
+    (:mod:`fricjax.diagnose.simulation_test`) offers where equation error names nothing: a
+    pointwise force the simulator integrates, acting at stops and breakaways, which
+    equation error holds by the stick/slip rule (not a stateful presliding lag; not the
+    Stribeck shape exponent, whose output-error signature is a Stribeck drop's).
     """
 
     effect: str = ""
     local: ClassVar[bool] = False
     by_refit: ClassVar[bool] = False
-    simulable: ClassVar[bool] = True
     by_simulation: ClassVar[bool] = False
 
     # structure ----------------------------------------------------------------------------
@@ -739,7 +736,6 @@ class StribeckShapeCandidate(_TermCandidate):
 
     effect: str = "stribeck_shape"
     by_refit: ClassVar[bool] = True
-    simulable: ClassVar[bool] = False
     local: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = StribeckShape
@@ -855,7 +851,6 @@ class PreslidingCandidate(_TermCandidate):
     # (they were unexplained, and quadratic drag); on the 24 null records of those lengths
     # the ratio's calibrated p ranged 0.0125-0.77 and nothing was named.
     by_refit: ClassVar[bool] = True
-    simulable: ClassVar[bool] = False
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
         return (_amplitude("presl_A", "N", AMPLITUDE_FACTOR * force_scale(problem)),)
@@ -1232,16 +1227,9 @@ CATALOGUE: tuple[Candidate, ...] = (
 )
 
 
-def simulation_candidates(which: str) -> tuple[str, ...]:
-    """The effects the output-error test offers: ``"laws"`` the entries marked
-    ``by_simulation``, ``"all"`` every ``simulable`` one (:class:`Candidate`)."""
-    if which == "laws":
-        return tuple(c.effect for c in CATALOGUE if c.by_simulation)
-    return tuple(c.effect for c in CATALOGUE if c.simulable)
-
-
-#: Values of ``DiagnoseSettings.simulation_terms`` (:func:`simulation_candidates`).
-SIMULATION_SETS = ("laws", "all")
+def simulation_candidates() -> tuple[str, ...]:
+    """The effects the output-error test offers: the entries marked ``by_simulation``."""
+    return tuple(c.effect for c in CATALOGUE if c.by_simulation)
 
 
 def candidate(effect: str) -> Candidate:

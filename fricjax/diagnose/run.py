@@ -23,7 +23,6 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.diagnose.catalogue import (
-    SIMULATION_SETS,
     candidate,
     drive_harmonic_note,
     near_drive_harmonic,
@@ -93,13 +92,8 @@ class DiagnoseSettings:
     noise: noise model of the whitening (``auto``: displacement noise, plus white force
         noise fitted to the residual when the drive is a recorded input;
         :func:`~fricjax.diagnose.locate.resolve_noise`).
-    simulation_test: where equation error names nothing on a record that sticks often or
-        shows unexplained structure, test the friction-law candidates by output error
-        (:mod:`fricjax.diagnose.simulation_test`).
-    simulation_terms: which candidates that test offers: ``laws`` (the friction laws,
-        default) or ``all`` (every pointwise catalogue term, each screened by its
-        output-error score; slower, and on the concealed benchmark's short records it
-        named wrong terms more often: module docstring of the simulation test).
+    simulation_test: where equation error names nothing, test the friction laws by output
+        error (:mod:`fricjax.diagnose.simulation_test`), which sees how the plant stops.
     time_limit: seconds for the whole diagnosis (``inf``: none); stage_limits: seconds per
         stage (``[diagnose.stage_limits]``, keys of
         :data:`~fricjax.diagnose.stages.LIMITED`). A limit acts only when hit, between
@@ -108,13 +102,10 @@ class DiagnoseSettings:
         skipped and recorded (``timing`` and ``not_tested`` in diagnosis.json, section Time
         of the report); a candidate left untested is never named. The base fit, its
         whitening, the maps of its residual and the report always run. Defaults: 180 s in
-        all, the issue's bound for any recording up to 30 s (EMPS's 24.8 s took 73 s on a
-        quiet machine, the bundled 0.272 s twin 46 s; a 4 s recording 790 s and one 1 s null
-        record more than 15 minutes, which the limit cuts). Each stage may take 60-90 s,
-        1.5x the largest stage measured on the twin on a loaded 2-core machine (score tests
-        57 s, base fit 50 s of 144 s), so a stage limit acts only on a stage gone far beyond
-        the ordinary and leaves time for the stages after it. A limit makes findings depend
-        on the machine's speed: a benchmark that compares findings sets ``time_limit = inf``.
+        all, the bound for any recording up to 30 s; 60-90 s a stage, so that a stage limit
+        acts only on a stage gone far beyond the ordinary and leaves time for the stages
+        after it. A limit makes findings depend on the machine's speed: a benchmark that
+        compares findings sets ``time_limit = inf``.
     """
 
     alpha: float = 0.01
@@ -126,7 +117,6 @@ class DiagnoseSettings:
     n_bins: int = 20
     noise: str = "auto"
     simulation_test: bool = True
-    simulation_terms: str = "laws"
     time_limit: float = TIME_LIMIT
     stage_limits: dict[str, float] = field(default_factory=lambda: dict(STAGE_LIMITS))
 
@@ -154,11 +144,6 @@ class DiagnoseSettings:
             "n_bins": (int, lambda v: v >= 2, ">= 2"),
             "noise": (str, lambda v: v in NOISE_MODELS, f"one of {', '.join(NOISE_MODELS)}"),
             "simulation_test": (bool, lambda v: True, "true or false"),
-            "simulation_terms": (
-                str,
-                lambda v: v in SIMULATION_SETS,
-                f"one of {', '.join(SIMULATION_SETS)}",
-            ),
             "time_limit": (float, lambda v: v > 0, "> 0 seconds (inf: none)"),
             "stage_limits": (
                 dict,
@@ -385,12 +370,10 @@ class HeldOut:
     The unwhitened EMS [N²] is reported beside it but does not decide under displacement
     noise: it weighs each frequency by the noise gain of the double differentiation, so on a
     1 s record it is dominated by the high band where the noise is amplified most and where
-    no catalogue term lives (session 3: the friction-drift finding lost 0.2 % of test EMS
-    while its whitened test RSS fell). Under the ``spectral`` noise model (a recorded drive
+    no catalogue term lives. Under the ``spectral`` noise model (a recorded drive
     input: the residual's noise is force noise) the EMS decides instead: there the whitener
     is the base residual's own smoothed spectrum, which counts the base's broadband misfit
-    on the test part as noise and so is biased towards the base (EMPS pulse file: the
-    presliding finding gains 11.4 % of EMS, 2.2 % of spectrally whitened RSS).
+    on the test part as noise and so is biased towards the base.
     """
 
     def __init__(
@@ -412,10 +395,8 @@ class HeldOut:
         base_test = with_model(self.test, base[0], base[1])
         # The test metric's noise model (damping, reversal mask) comes from the same base
         # fit as the training one, the whole record's: the base refitted on the training
-        # part alone can land far from it along the weakly determined Stribeck curve
-        # (visible friction drift on the 1 s twin: vs 0.039 m/s against 0.145), and a
-        # whitener built there put the test RSS at ten times the noise level, where the
-        # drift finding "lost" 18 %.
+        # part alone can land far from it along a weakly determined direction, and a
+        # whitener built there would judge every model in another metric.
         self.wh_test = default_whitener(base_test, base[2], noise)
         self.by_ems = resolve_noise(base_test, noise) == "spectral"
         self.metric = "EMS" if self.by_ems else "whitened RSS"
@@ -477,10 +458,8 @@ class HeldOut:
         training part.
 
         The check of a record whose training part cannot determine the model
-        (:meth:`determined` false: a 0.272 s record keeps ~30 whitened dimensions, its
-        first 70 % ~21, for 26 base parameters and a term's 3). Refitted there, every model
-        only extrapolates from its start: a periodic force found at its true wavelength
-        (9.88 mm against 9.91) and amplitude lost 1202 % on the last 30 %. Here the base
+        (:meth:`determined` false). Refitted there, every model only extrapolates from its
+        start. Here the base
         has seen the test part and the term has not, so the check leans towards the base:
         a gain means the term predicts what the base, fitted to those samples, left."""
         a, b = self.frozen_scores(before, after, own)
@@ -586,8 +565,7 @@ class FoldResidual(eqx.Module):
         return self.rows @ self.inner(theta)
 
 
-# K of the cross-validation; 5 leaves a fold's fit 80 % of the coordinates (a 0.272 s
-# record keeps ~48 whitened dimensions for 26 base parameters and more).
+# K of the cross-validation; 5 leaves a fold's fit 80 % of the coordinates.
 CV_FOLDS = 5
 _CV_FIT = RefineSettings(max_steps=100, rtol=1e-8, atol=1e-8)
 
@@ -600,15 +578,10 @@ def cv_folds(coords: int, fit_params: int, folds: int = CV_FOLDS) -> int:
     the coordinates hold (down to one coordinate each); unchanged where even one
     coordinate held out leaves too few.
 
-    Why. A 0.272 s record keeps ~34-43 whitened coordinates for 26 base parameters and a
-    term's 3: five folds train on too few to refit the model, so only the term's own
-    parameters were fitted there, the base frozen where it had absorbed part of the effect,
-    and the check leaned towards the base (a hidden impact found at its instant and width,
-    ΔBIC 142: -2.8 %). A fold fit that is only just determined predicts its held-out
-    coordinates with a variance that grows as h/(1 − h), h = parameters/training
-    coordinates, so it leans against the larger model: a hidden 69 Hz harmonic found at
-    68.8 Hz (ΔBIC 120) lost 72 % with five folds of 8 on 43 coordinates (6 spare), and
-    gained 63 % with fourteen folds of 3 (11 spare), 82 % leaving one out."""
+    Why. A fold fit that is only just determined predicts its held-out coordinates with a
+    variance that grows as h/(1 − h), h = parameters/training coordinates, so it leans
+    against the larger model; with too few training coordinates only the term's own
+    parameters could be fitted, which leans towards the base."""
     if fit_params <= 0:
         return folds
     spare = coords - fit_params - MIN_DOF_LEFT
@@ -677,9 +650,8 @@ class CrossValidation:
         inner = whitened_residual(with_model(self.problem, model, spec), model, spec, self.wh)
         all_idx = np.arange(self.basis.shape[1])
         total = 0.0
-        # One compiled LM run once per fold. The folds vmapped into one LM (jax.vmap over
-        # the rows) gave the same gains and was slower, as every fold then runs until the
-        # slowest stops: 1 s twin, two models, 25.6 s cold / 12.4 s warm against 8.3 / 2.4.
+        # One compiled LM run once per fold: vmapped, every fold would run until the
+        # slowest stops.
         for test in self.folds:
             x = np.clip(theta, spec.lower, spec.upper)
             if fit:
@@ -821,8 +793,7 @@ class Confirm:
             return False, report
         for (gain_key, why_key), judge in zip(HELDOUT_KEYS, self.judges, strict=False):
             # A local finding whose place the test part never reaches cannot be judged
-            # there: its "gain" is only the base parameters' extrapolation (a bump at
-            # x = 37 mm on a record whose last 30 % runs from 72 to 101 mm: -55 %).
+            # there: its "gain" is only the base parameters' extrapolation.
             gain, why = judge.gain(
                 current, (refit.model, refit.spec, refit.theta), place, own=_own(current, refit)
             )
@@ -837,8 +808,7 @@ class Confirm:
         ):
             # The record's own split could fit only the finding's parameters, the base
             # frozen where it absorbed part of the effect: a check that leans towards the
-            # base (0.272 s, hidden periodic force found at its wavelength: -1372 % there).
-            # The second ram, fitted as the selection fitted, judges alone.
+            # base. The second recording, fitted as the selection fitted, judges alone.
             report.setdefault(HELDOUT_KEYS[1][1], SPLIT_DEFERS)
         elif (
             len(self.judges) == 1
@@ -857,8 +827,7 @@ class Confirm:
         ]
         judged = heldout_judged(report)
         if not judged:
-            # Session 11's benchmark: 6 of 28 named findings (4 bumps, 2 impacts) acted
-            # where the last 30 % never goes and went unjudged.
+            # a local finding where no test part goes (a bump, an impact)
             cv = self._cv(refit.spec)
             report[CV_KEY] = cv.gain(
                 current, (refit.model, refit.spec, refit.theta), own=_own(current, refit)
@@ -1051,23 +1020,17 @@ def diagnose(
         problem, validation = with_rest_both(problem, validation, run.value, evidence.sigma_x)
     # The first search fitted the sliding law on the samples at rest too; where the plant
     # sticks often its breakaway bias can hold the base in a poor minimum at the box's
-    # edge (asymmetric friction on a 1 s record, 58 % of it near rest: excess whitened RSS
-    # 219 σ_x² from that start, 31 from a search with the stick/slip rule on the marked
-    # samples, where the effect's own unabsorbed part is 27). The search is run again
-    # with the rule; the GLS fit keeps the better of the two starts.
+    # edge. The search is run again with the rule; the GLS fit keeps the better start.
     starts: tuple[np.ndarray, ...] = ()
     if problem.rest is not None and clock.over("base_fit"):
         clock.skip("base_fit", "second base search with the stick/slip rule")
     elif problem.rest is not None:
         with clock.stage("base_fit", "base fit: second search, stick/slip rule at rest"):
             starts = (identify(problem, replace(identify_settings, objective="equation")).value,)
-    # The held-out check is part of the stopping rule (forward_select's ``confirm``): a
-    # term that the held-out data judge and do not favour is not named (the concealed
-    # benchmark at 6c32a0f: of the 3 such findings, 2 were wrong names, stribeck for a
-    # presliding lag at -31 % and quadratic_drag for a Stribeck drop at -116 %); the next
-    # candidate that passes the tests is asked instead. A second recording of the same
-    # motion confirms any term that captures reproducible structure, right physics or not
-    # (on the benchmark's repeats those two gained 26 % and 4.5 %), so with one both
+    # The judge (record gains, then the held-out checks) is part of the stopping rule
+    # (forward_select's ``confirm``): a candidate it refuses is not named and the next one
+    # that passes the tests is asked. A second recording of the same motion confirms any
+    # term that captures reproducible structure, right physics or not, so with one both
     # checks run, and a term must gain in every check that reaches its place.
     confirm = Confirm(problem, settings.heldout, validation, settings.noise)
     sel = forward_select(
@@ -1119,14 +1082,14 @@ def diagnose(
     # test against the record's noise decides whether any candidate is fitted there.
     if settings.simulation_test and not chosen_steps:
         if clock.over("simulation_test"):
-            for effect in simulation_candidates(settings.simulation_terms):
+            for effect in simulation_candidates():
                 clock.untested("simulation_test", effect)
         else:
             with clock.stage("simulation_test", "simulation test: base by output error"):
                 sim = simulation_test(
                     problem,
                     problem.spec.as_dict(sel.base_theta),
-                    effects=simulation_candidates(settings.simulation_terms),
+                    effects=simulation_candidates(),
                     alpha=settings.alpha,
                     min_delta_bic=settings.min_delta_bic,
                     fraction=settings.heldout,
@@ -1164,10 +1127,8 @@ def diagnose(
                 )
             except TooShortToLocate as err:
                 # A short record whose base fit leaves few degrees of freedom may have none
-                # left for the maps once the named term is in (0.272 s, base + a Stribeck
-                # drop named by simulation: 47 fitted directions of 48). The finding stands
-                # on its own tests; only the maps after it are missing, and the report says
-                # why.
+                # left for the maps once the named term is in. The finding stands on its own
+                # tests; only the maps after it are missing, and the report says why.
                 locate_note = str(err)
     with clock.stage("locate", "fit figures after the findings"):
         fit["after"] = {
@@ -1288,10 +1249,6 @@ def _simulation_summary(sim: SimulationTest) -> dict[str, Any]:
             }
             for f in sim.fits
         ],
-        "scores": [
-            {"effect": sc.effect, "stat": sc.stat, "p_value": sc.p_value, "start": sc.start}
-            for sc in sim.scores
-        ],
         "chosen": sim.chosen.effect if sim.chosen is not None else None,
         "heldout": sim.heldout,
         "rejected": [{"effect": f.effect, **r} for f, r in sim.rejected],
@@ -1332,8 +1289,7 @@ def _unexplained(loc: LocateReport, alpha: float) -> dict[str, Any] | None:
     counts only when its family-wise p-value is below ``alpha / (number of maps)``
     (Bonferroni, as the candidates share ``alpha`` over the catalogue). Each map alone
     keeps its own ``alpha`` for the significance bands it draws (``locate``); six maps at
-    α = 0.01 each made ~6 % of null records "unexplained" (measured on the concealed
-    benchmark's nulls: 2 of 12, both at family p = 0.0035 > 0.01/6).
+    α each would make ~6α of null records "unexplained".
     """
     limit = alpha / max(len(loc.family_p), 1)
     sig = [b for b in loc.significant if loc.family_p.get(b.variable, 1.0) <= limit]

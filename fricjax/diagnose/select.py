@@ -20,8 +20,7 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
   (Wilks: under H0 LR and S agree to first order), where the record leaves more residual
   degrees of freedom than the base has parameters. The base's own nonlinear friction
   parameters bend towards such a term, so the one-step score at the base optimum sees
-  little of it: on a 1 s record with hidden quadratic drag (c = 5) the score was 9.5
-  (p = 1.7e-3), the refit's LR 32.7; on five null records every such LR was ≤ 4.3.
+  little of what a refit recovers.
 * The best few candidates are refitted (GLS, LM on base + term, from up to three distinct
   grid maxima of the score: :func:`refit_starts`); ΔBIC = BIC(base) − BIC(base+term) with
   ``BIC = M·ln(RSS_w/M) + k·ln M``. Where none of them is both paying and confirmed, the
@@ -361,8 +360,7 @@ def boxed_base(
     parameter whose step ends at its bound is held there, and only the rest of J_w is
     projected out. The score tests project out all of J_w, as if every parameter could
     move; on a short record the base absorbs an effect until some parameters reach their
-    box (0.272 s, hidden impact at c = 10: F0, Fc, Fs and two drive harmonics), and what
-    they would still have to take is left in span J, where no score sees it.
+    box, and what they would still have to take is left in span J, where no score sees it.
     """
     # in units of each parameter's box width: the columns span ~10 decades (N against rad)
     width = np.asarray(spec.upper - spec.lower, dtype=np.float64)
@@ -492,10 +490,8 @@ def refit_starts(
     local maxima (a broad peak's flank two steps out can be chosen).
 
     Why. A frequency, a location or a width makes the refit's cost multimodal, and the
-    grid's best point is not always in the true optimum's basin: a hidden 69 Hz harmonic on
-    a 0.272 s record scored highest at 73.9 Hz once centred on its errors-in-variables
-    mean (at 68.5 Hz uncentred), and the refit from 73.9 Hz stopped at 74.7 Hz with
-    ΔBIC 3.3; from 68.5 Hz it reached 68.8 Hz (truth 69.0) with ΔBIC 58.8.
+    grid's best point is not always in the true optimum's basin (the centred and the
+    uncentred maxima can lie in different ones).
     """
     names = list(points[0]) if points else []
     if not names:
@@ -637,11 +633,10 @@ def best_supported(
     Why. Every θ in that region explains the record as well as the fit does, as far as the
     noise lets the tests see; the whitened metric weighs only the band where the noise is
     known, so on a short record the fit spends its freedom on that band and can leave the
-    user's own metric, the EMS, far worse than identify's (0.272 s paper twin: 11 253 N²
-    against 4 504). Of the equally supported fits, the one that is also best on the EMS is
-    the base the diagnosis reports and tests from; the tests' statistics project the
-    fitted directions out and compare RSS_w against ``rss_min``, so the choice within the
-    region does not enter them."""
+    user's own metric, the EMS, far worse than identify's. Of the equally supported fits,
+    the one that is also best on the EMS is the base the diagnosis reports and tests
+    from; the tests' statistics project the fitted directions out and compare RSS_w
+    against ``rss_min``, so the choice within the region does not enter them."""
     spec = problem.spec
     fn = whitened_residual(problem, problem.model, spec, wh)
     j_w = _jacobian(fn, thetas[0])
@@ -672,20 +667,13 @@ def rebase(
 
 
 # Residual degrees of freedom a model must leave for its σ̂² and its mismatch maps
-# (:func:`~fricjax.diagnose.locate.locate_plan` needs 2): on a 0.272 s record (48 whitened
-# dimensions, some of them the samples at rest) a third term once left 1, and the
-# diagnosis failed in its final maps instead of naming two terms; on the concealed
-# benchmark's 0.272 s periodic case at c = 10 (30 whitened dimensions) the bump it was
-# wrongly named left 1.
+# (:func:`~fricjax.diagnose.locate.locate_plan` needs 2).
 MIN_DOF_LEFT = 2
 
 # A candidate whose signature overlaps a refused one's by more than this (|cos| of their
 # whitened, projected signatures) and that gains no more than it would only re-explain the
-# structure the held-out check refused (a 2 s record with hidden quadratic drag: drag
-# refused at -8.9 % on the last 30 %, then stribeck, ΔBIC 20 against 54, accepted); it is
-# not asked. One that gains more explains more than the refused one did (0.272 s, hidden
-# periodic force: a bump refitted first, ΔBIC 136, refused; the periodic force, refitted
-# after it, 247).
+# structure the judge refused; it is not asked. One that gains more explains more than the
+# refused one did. (0.5: more than half of either signature is the other's.)
 SAME_STRUCTURE = 0.5
 
 
@@ -859,8 +847,8 @@ def forward_select(
                         problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base, known
                     )
                 # The refit may have left the base's basin for a better one that the base
-                # alone reaches too (short records: a null's "gain" of 22 σ² on 0.272 s):
-                # the ratio is taken against the base refitted from the refit's end point.
+                # alone reaches too: the ratio is taken against the base refitted from the
+                # refit's end point.
                 rss_ref = min(rss_base, rebase(problem, model, spec, rf, wh)[1])
                 bic_ref = (
                     bic(rss_ref, wh.dof, spec.n_free)
@@ -918,8 +906,7 @@ def forward_select(
         chosen, report = None, {}
         # On a short record the linearised ranking can be far off and a refit is cheap: all
         # eligible candidates are refitted before any is asked, so the best true ΔBIC is
-        # asked first (0.272 s, hidden periodic force, c = 10: refitted in pairs, a bump of
-        # ΔBIC 233 was asked before the periodic term's 344).
+        # asked first.
         batch = len(queue) if short else max(n_refit, 1)
         while True:
             for sc in queue[:batch]:
@@ -977,10 +964,8 @@ def forward_select(
             if chosen is not None or not queue:
                 break
             # None of the refits so far is both paying and confirmed, and eligible
-            # candidates are left: on a short record the linearised ranking can be far off
-            # (0.272 s, hidden periodic force, c = 5: the two refitted, a drift and a
-            # presliding lag, scored 34.9 and 34.5 and gained ΔBIC -0.8 and -4.9), so the
-            # next ones are refitted before the step gives up.
+            # candidates are left: the linearised ranking can be far off, so the next ones
+            # are refitted before the step gives up.
         if not refits:  # a time limit left every eligible candidate unrefitted
             for sc in scores:
                 sc.delta_bic_linear = float(lin[sc.effect])
