@@ -787,10 +787,8 @@ class Confirm:
         place = candidate(refit.effect).location(refit.params, self.problem)
         gains = record_gains(self.problem, current, (refit.model, refit.spec, refit.theta))
         report: dict[str, Any] = dict(zip(RECORD_KEYS, gains, strict=True))
-        if not all(g > 0 for g in gains if math.isfinite(g)):
-            # the judge's rule (b): a finding must improve the fit the user sees
-            report["heldout_confirmed"] = False
-            return False, report
+        # the judge's rule (b): a finding must improve the fit the user sees
+        record_ok = all(g > 0 for g in gains if math.isfinite(g))
         for (gain_key, why_key), judge in zip(HELDOUT_KEYS, self.judges, strict=False):
             # A local finding whose place the test part never reaches cannot be judged
             # there: its "gain" is only the base parameters' extrapolation.
@@ -838,9 +836,9 @@ class Confirm:
             judged = heldout_judged(report)
         if any(k in judged for k in frozen_by):
             report[FROZEN_KEY] = True
-        ok = all(g > 0 for g in judged.values())
-        report["heldout_confirmed"] = bool(judged) and ok
-        return ok, report
+        held_ok = all(g > 0 for g in judged.values())
+        report["heldout_confirmed"] = bool(judged) and held_ok
+        return record_ok and held_ok, report
 
     def _cv(self, spec: ParamSpec) -> CrossValidation:
         """The cross-validation with as many folds as a model of ``spec`` needs
@@ -866,7 +864,7 @@ def _rejected(problem: Problem, refit: Any, p_value: float, report: dict) -> dic
     not the judge: it worsened the record's own EMS or simulation, or the held-out check."""
     location = candidate(refit.effect).location(refit.params, problem)
     judged = heldout_judged(report)
-    if judged:
+    if judged and not all(g > 0 for g in judged.values()):
         why = (
             f"that term made the fit on held-out data worse ({100 * min(judged.values()):+.1f} "
             "%), so it is not claimed: no catalogue term explains this structure in a way "
