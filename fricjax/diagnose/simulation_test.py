@@ -12,9 +12,10 @@ standard deviations.
 Test. The base model (equation-error estimate as start) is fitted by output error with
 multiple shooting (:func:`fricjax.output_error.fit_output_error`, costs ``E = Σ r_aug²`` in
 units of the record's own ``σ̂_x²``, :mod:`fricjax.diagnose.evidence`; its lack of fit,
-:func:`lack_of_fit_p`, is reported). Each friction law of the catalogue (entries marked ``by_simulation``) is fitted from the base's optimum,
-the law at its null and its shape at its grid's middle. With the costs in units of the
-record's σ̂_x² (ν degrees of freedom), k the term's free parameters and n the samples:
+:func:`lack_of_fit_p`, is reported). Each friction law of the catalogue (entries marked
+``by_simulation``) is fitted from the base's optimum, the law at its null and its shape at
+its grid's middle. With the costs in units of the record's σ̂_x² (ν degrees of freedom), k
+the term's free parameters and n the samples:
 
     LR = E_base − E_term,   p = P(F(k, ν) > LR/k),   ΔBIC = LR − k·ln n
 
