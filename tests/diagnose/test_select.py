@@ -25,12 +25,18 @@ from fricjax.diagnose.run import (
     DiagnoseSettings,
     diagnose,
 )
+from fricjax.diagnose.stages import LIMITED
 from fricjax.identify import IdentifySettings
 from fricjax.problem import build_problem
 
 ROOT = Path(__file__).resolve().parents[2]
 # no time limit: what the diagnosis finds must not depend on the machine's load
-FAST = {"n_mc": 400, "max_terms": 2, "time_limit": float("inf")}
+FAST = {
+    "n_mc": 400,
+    "max_terms": 2,
+    "time_limit": float("inf"),
+    "stage_limits": dict.fromkeys(LIMITED, float("inf")),
+}
 
 #: one clearly visible instance of each effect on the 1 s paper twin (term, parameters)
 VISIBLE = {
