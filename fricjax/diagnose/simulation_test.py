@@ -318,7 +318,7 @@ def simulation_test(
     that judges it. ``clock``: the diagnosis' time limits (stage ``simulation_test``); a
     candidate a limit leaves unfitted or unchecked is recorded there as not tested."""
     clock = clock or Clock()
-    effects = simulation_candidates("laws") if effects is None else effects
+    effects = simulation_candidates() if effects is None else effects
     evidence = evidence or record_noise(problem)
     settings = settings or OutputErrorSettings(segment_s=SEGMENT_S)
     # costs in units of the record's own σ̂_x² (fricjax.diagnose.evidence)
