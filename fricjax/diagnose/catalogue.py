@@ -574,11 +574,18 @@ class Candidate:
     parameters (Fs, vs, Fc, Fv) bend towards it, so at the base optimum its one-step score
     sees little of what a refit recovers, and forward selection tests it by the likelihood
     ratio of a refit instead (:func:`fricjax.diagnose.select.forward_select`).
+
+    ``by_simulation = True``: a friction law that the output-error test
+    (:mod:`fricjax.diagnose.simulation_test`) offers where equation error names nothing: a
+    pointwise force the simulator integrates, acting at stops and breakaways, which
+    equation error holds by the stick/slip rule (not a stateful presliding lag; not the
+    Stribeck shape exponent, whose output-error signature is a Stribeck drop's).
     """
 
     effect: str = ""
     local: ClassVar[bool] = False
     by_refit: ClassVar[bool] = False
+    by_simulation: ClassVar[bool] = False
 
     # structure ----------------------------------------------------------------------------
     def term(self, problem: Problem) -> Term | None:
@@ -689,6 +696,7 @@ class StribeckCandidate(_TermCandidate):
 
     effect: str = "stribeck"
     by_refit: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = GaussianStribeck
 
@@ -768,6 +776,7 @@ class AsymmetricCandidate(_TermCandidate):
 
     effect: str = "asymmetric_friction"
     by_refit: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = AsymmetricFriction
 
@@ -803,6 +812,7 @@ class QuadraticDragCandidate(_TermCandidate):
 
     effect: str = "quadratic_drag"
     by_refit: ClassVar[bool] = True
+    by_simulation: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = QuadraticDrag
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
@@ -1215,6 +1225,11 @@ CATALOGUE: tuple[Candidate, ...] = (
     FrictionDriftCandidate(),
     MassErrorCandidate(),
 )
+
+
+def simulation_candidates() -> tuple[str, ...]:
+    """The effects the output-error test offers: the entries marked ``by_simulation``."""
+    return tuple(c.effect for c in CATALOGUE if c.by_simulation)
 
 
 def candidate(effect: str) -> Candidate:

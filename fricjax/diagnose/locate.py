@@ -57,13 +57,12 @@ from jaxtyping import Array, Float
 from scipy import stats
 
 from fricjax.data.preprocess import derivatives, noise_gains
+from fricjax.diagnose.evidence import near_rest_band, record_noise
 from fricjax.diagnose.whiten import (
     Whitener,
     linear_damping,
     make_whitener,
     noise_spectrum,
-    reversal_mask,
-    robust_sigma,
 )
 from fricjax.errors import FricjaxError, where
 from fricjax.problem import Problem, needs_input
@@ -552,41 +551,24 @@ def resolve_noise(problem: Problem, noise: str = "auto") -> str:
     return "spectral" if needs_input(problem.model) else "position"
 
 
-def _static_level(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
+def static_level(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
     """Largest friction limit at rest over the record [N] (0: nothing sticks at theta)."""
     p = problem.spec.unflatten(jnp.asarray(theta, dtype=jnp.float64))
     jump = np.asarray(problem.model.static(p, problem.signals, jnp.ones(problem.n)))
     return float(np.max(np.abs(jump)))
 
 
-def rest_sigma(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
-    """σ̂_x [m] that :func:`near_rest` scales its band by: :func:`robust_sigma` of a first
-    whitening of the residual at ``theta`` (the sliding law on every sample)."""
-    first = make_whitener(problem, damping=linear_damping(problem, theta))
-    return robust_sigma(first, first(np.asarray(problem.residual(theta))))
-
-
-def near_rest(
+def default_whitener(
     problem: Problem,
     theta: Float[np.ndarray, " d"],
-    kappa: float = 4.0,
+    noise: str = "auto",
     sigma_x: float | None = None,
-) -> Float[np.ndarray, " n"] | None:
-    """Samples at or near rest, ``|v| < κ·σ_v`` (:func:`reversal_mask`) with σ̂_x
-    ``sigma_x`` [m], by default :func:`rest_sigma` at ``theta``, bool [n]; ``None`` when the
-    model at ``theta`` has no static friction (nothing sticks)."""
-    if _static_level(problem, theta) == 0.0:
-        return None
-    sigma = rest_sigma(problem, theta) if sigma_x is None else sigma_x
-    return reversal_mask(problem, sigma, kappa=kappa)
-
-
-def default_whitener(
-    problem: Problem, theta: Float[np.ndarray, " d"], noise: str = "auto"
 ) -> Whitener:
     """Whitener with the linearised damping at theta; when the model's friction jumps at
     v = 0 (nonzero static friction at theta), the samples near velocity reversals are
-    excluded (|v| < 4·σ_v, σ̂_x from a first whitening by :func:`robust_sigma`): there the
+    excluded (|v| < 4·σ_v, :func:`~fricjax.diagnose.evidence.near_rest_band` with the
+    record's own σ̂_x, ``sigma_x`` [m], by default :func:`~fricjax.diagnose.evidence.
+    record_noise` of ``problem``): there the
     sign flips of the Coulomb term dominate the low bins (:mod:`fricjax.diagnose.whiten`).
     When ``problem.rest`` marks the samples at rest (the residual then uses the stick/slip
     rule there), those are the samples excluded. They stay excluded although the rule
@@ -610,18 +592,17 @@ def default_whitener(
         dt = float((problem.t[-1] - problem.t[0]) / (problem.n - 1))
         spectrum = noise_spectrum(r, dt)
         unmasked = make_whitener(problem, spectrum=spectrum)
-    static = _static_level(problem, theta)
+    static = static_level(problem, theta)
     if static == 0.0:
         return unmasked
-    sigma = robust_sigma(first, first(r))
+    sigma = record_noise(problem).sigma_x if sigma_x is None else sigma_x
     # The samples marked at rest are these same samples (with_rest), kept as marked so that
     # the parts of a held-out split and the whole record agree on them.
-    mask = reversal_mask(problem, sigma) if problem.rest is None else problem.rest
+    mask = near_rest_band(problem, sigma).mask if problem.rest is None else problem.rest
     # A flip of sgn v puts a spike of up to 2·|F_static| on a masked sample. Only the
     # whitened directions where such spikes would show are projected out, so a stick phase
     # costs a few degrees of freedom instead of one per sample; at most 0.4·M of them,
-    # the largest first (a badly fitting base inflates σ̂ and with it the mask, and
-    # something must be left to test).
+    # the largest first (something must be left to test).
     # (the spectral whitener's vectors are already in noise units, the position one's in m)
     spike = 2.0 * static / (1.0 if spectrum is not None else sigma)
     limit = int(0.4 * unmasked.M)

@@ -19,9 +19,15 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
-from fricjax.data.noise import estimate_noise
 from fricjax.data.preprocess import noise_gains
-from fricjax.diagnose.run import CV_FOLDS, CV_FOLDS_KEY, FROZEN_KEY, SPLIT_DEFERS, SPLIT_FROZEN
+from fricjax.diagnose.run import (
+    CV_FOLDS,
+    CV_FOLDS_KEY,
+    FROZEN_KEY,
+    SPLIT_DEFERS,
+    SPLIT_FROZEN,
+    on_bound,
+)
 from fricjax.io.atomic import write_text_atomic
 from fricjax.params import ParamSpec
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
@@ -30,12 +36,6 @@ from fricjax.report.tables import fmt
 
 if TYPE_CHECKING:
     from fricjax.diagnose.run import Diagnosis
-
-# A parameter within this fraction of its search range from a bound is "on the bound".
-BOUND_TOL = 1e-3
-# κ of the near-rest band |v| < κ·σ_v (fricjax.diagnose.locate.near_rest's default)
-REST_KAPPA = 4.0
-
 
 # -- numbers the report and its figures share ---------------------------------------------
 
@@ -70,16 +70,6 @@ def term_force(diag: Diagnosis, finding: Mapping[str, Any]) -> np.ndarray | None
     )
 
 
-def rest_band(diag: Diagnosis) -> float | None:
-    """The near-rest speed [m/s]: the samples with |v| below it are marked at rest and left
-    out of the equation-error tests (the fastest marked sample's |v|; the band is
-    ``|v| < κ·σ_v``). None when no sample is marked."""
-    rest = diag.problem.rest
-    if rest is None or not np.any(rest):
-        return None
-    return float(np.max(np.abs(np.asarray(diag.problem.v)[np.asarray(rest)])))
-
-
 def velocity_noise_gain(diag: Diagnosis) -> float:
     """σ_v/σ_x [1/s] of the preprocessing's velocity filter (white displacement noise)."""
     pb = diag.problem
@@ -93,20 +83,6 @@ def _spec_of(diag: Diagnosis, name: str) -> ParamSpec | None:
     for st in diag.selection.steps:
         specs += [r.spec for r in st.refits] + [r.spec for r, _ in st.rejected]
     return next((s for s in specs if name in s.names), None)
-
-
-def on_bound(spec: ParamSpec | None, name: str, value: float) -> str:
-    """``"lower"``/``"upper"`` where ``value`` sits on that bound of ``name``'s search
-    range (within :data:`BOUND_TOL` of it), else ``""``."""
-    if spec is None or name not in spec.names or not spec[name].free:
-        return ""
-    p = spec[name]
-    tol = BOUND_TOL * (p.upper - p.lower)
-    if value <= p.lower + tol:
-        return "lower"
-    if value >= p.upper - tol:
-        return "upper"
-    return ""
 
 
 def base_on_bounds(diag: Diagnosis) -> list[tuple[str, float, str, float, str]]:
@@ -367,11 +343,9 @@ def finding_figure(
             )
         ax.axhline(0.0, color="0.3", lw=0.6)
         ax.set_ylabel("residual [N]")
-        band = rest_band(diag)
-        if attr == "v" and band is not None:
-            ax.axvspan(
-                -band, band, color="tab:purple", alpha=0.12, label=f"at rest, |v| < {band:.3g} m/s"
-            )
+        band = diag.near_rest.speed
+        if attr == "v" and band > 0:
+            ax.axvspan(-band, band, color="tab:purple", alpha=0.12, label=f"|v| < {band:.3g} m/s")
         _shade(ax, loc, key if key != "direction" else "")
     ax.set_xlabel(label)
     ax.grid(alpha=0.3, which="both")
@@ -412,87 +386,47 @@ def report_figures(diag: Diagnosis, out: Path) -> dict[str, Path]:
 
 
 def noise_blocks(diag: Diagnosis) -> list[Block]:
-    """What the record allows: the noise model, its scale with its unit, the near-rest band
-    in m/s and its share of the samples."""
-    sel, pb = diag.selection, diag.problem
-    # the same model-free estimate `fricjax inspect` reports (fricjax.data.noise)
-    own_noise = estimate_noise(np.asarray(pb.x))
-    own = own_noise.sigma
+    """What the record allows: the noise model with its scale, error and degrees of
+    freedom, the near-rest band in m/s and its share of the samples."""
+    pb, ev, band = diag.problem, diag.evidence, diag.near_rest
     dt = float((pb.t[-1] - pb.t[0]) / (pb.n - 1))
     rows = [
         ("samples", f"{pb.n} over {pb.t[-1] - pb.t[0]:.4g} s ({1 / dt:.4g} Hz)"),
-        ("σ_x of the record itself (its own high band, model-free)", own_noise.describe("m")),
+        ("σ_x of the record itself (its own high band, model-free)", ev.describe()),
     ]
-    if sel.whitener.spectral:
+    if diag.selection.whitener.spectral:
         text = (
-            "Noise model: **spectral** — the drive input is recorded, so the residual's noise "
-            "is force noise of its own colour; every test is scaled by the base residual's "
-            f"smoothed spectrum. The whitened residual's scale is {diag.extra['sigma_x_m']:.3g} "
-            "(dimensionless: 1 means exactly the level of that spectrum), not a length."
-        )
-        rows.append(
-            ("whitened residual scale (spectral, dimensionless)", f"{diag.extra['sigma_x_m']:.3g}")
+            "Noise model: **spectral**. The drive input is recorded, so the residual's noise "
+            "includes that input's own noise, which the displacement record cannot measure; "
+            "the equation-error tests are scaled by the base residual's smoothed spectrum "
+            f"(whitened scale {diag.selection.sigma:.3g}, dimensionless). The simulation "
+            f"(output-error) test uses the record's own σ_x = {length(ev.sigma_x)}."
         )
     else:
-        used = sel.extra.get("bic_sigma2")
-        fit_sigma = float(diag.extra["sigma_x_m"])
-        rows.append(("σ̂_x from the base fit's whitened residual", length(fit_sigma)))
-        if used is not None:
-            text = (
-                "Noise model: **displacement noise** on x. This record is short, so the tests "
-                f"and the BIC use σ_x = {length(math.sqrt(used))} from the third difference of "
-                f"x (independent of the model); the base fit's residual gives {length(fit_sigma)}."
-            )
-        else:
-            text = (
-                "Noise model: **displacement noise** on x, σ̂_x = "
-                f"{length(fit_sigma)} from the base fit's whitened residual (used by the tests and "
-                f"the BIC); the record's own high band gives {length(own)}."
-            )
-        if own > 0 and fit_sigma > 1.5 * own:
-            text += (
-                f" The fit's σ̂_x is {fit_sigma / own:.1f}× the record's own: model error the "
-                "base leaves counts as noise, which makes every test less sensitive."
-            )
+        text = (
+            f"Noise model: **displacement noise** on x ({ev.noise.model}), σ_x = "
+            f"{length(ev.sigma_x)} measured from the record itself, not from any model's "
+            f"residual. Every test and the BIC use it; its own uncertainty enters as ν = "
+            f"{ev.nu} degrees of freedom (F instead of χ² references)."
+        )
     blocks: list[Block] = [Para(text)]
-    band = rest_band(diag)
-    share = float(diag.extra.get("near_rest_fraction", 0.0))
-    if band is None:
-        blocks.append(
-            Para(
-                "Near rest: no sample is marked at rest (the base model at its fit has no "
-                "static friction, or the plant never comes near v = 0)."
+    rows.append(("near-rest band |v| < κ·σ_v", f"|v| < {band.speed:.3g} m/s (κ = {band.kappa:g})"))
+    n_band = int(np.sum(band.mask))
+    rows.append(("samples in it", f"{n_band} of {pb.n} ({100 * band.share:.1f} %)"))
+    held = pb.rest is not None and bool(np.any(pb.rest))
+    blocks.append(
+        Para(
+            f"Near rest: {100 * band.share:.1f} % of the samples ({n_band} of {pb.n}) have "
+            f"|v| < {band.speed:.3g} m/s, where noise could flip the sign of v (σ_v = "
+            f"σ_x·{velocity_noise_gain(diag):.3g}/s through the velocity filter). "
+            + (
+                "The equation error holds them by the stick/slip rule and leaves them out of "
+                "its tests; the simulation (output-error) test sees them."
+                if held
+                else "The base model at its fit has no static friction, so none is held at rest."
             )
         )
-        rows.append(("samples marked at rest", "none"))
-    else:
-        n_rest = int(np.sum(np.asarray(pb.rest)))
-        gain_v = velocity_noise_gain(diag)
-        sigma_rest = band / (REST_KAPPA * gain_v)
-        rows.append(
-            ("near-rest band (left out of the equation-error tests)", f"|v| < {band:.3g} m/s")
-        )
-        rows.append(("samples in it", f"{n_rest} of {pb.n} ({100 * share:.1f} %)"))
-        own_band = REST_KAPPA * own * gain_v
-        own_share = float(np.mean(np.abs(np.asarray(pb.v)) < own_band))
-        text = (
-            f"Near rest: {100 * share:.1f} % of the samples ({n_rest} of {pb.n}) have "
-            f"|v| < {band:.3g} m/s, the band |v| < {REST_KAPPA:g}·σ_v where noise could flip "
-            f"the sign of v (σ_v = σ_x·{gain_v:.3g}/s through the velocity filter, with the "
-            f"σ_x ≈ {length(sigma_rest)} of the first base fit). They are left out of the "
-            "equation-error tests; only the simulation (output-error) test can judge "
-            "low-speed physics there."
-        )
-        if own_share < 0.5 * share:
-            text += (
-                f" With the record's own σ_x ({length(own)}) the band would be "
-                f"|v| < {own_band:.3g} m/s and hold {100 * own_share:.1f} % of the samples: "
-                "most of the marked samples slide slowly rather than rest. The band was sized "
-                "by a σ_x inferred from the force residual, where model error (and, with a "
-                "recorded drive or force input, that input's own noise) counts as "
-                "displacement noise."
-            )
-        blocks.append(Para(text))
+    )
     return [Heading("The record and its noise"), *blocks, Table(("quantity", "value"), tuple(rows))]
 
 

@@ -20,20 +20,21 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
   (Wilks: under H0 LR and S agree to first order), where the record leaves more residual
   degrees of freedom than the base has parameters. The base's own nonlinear friction
   parameters bend towards such a term, so the one-step score at the base optimum sees
-  little of it: on a 1 s record with hidden quadratic drag (c = 5) the score was 9.5
-  (p = 1.7e-3), the refit's LR 32.7; on five null records every such LR was ≤ 4.3.
+  little of what a refit recovers.
 * The best few candidates are refitted (GLS, LM on base + term, from up to three distinct
   grid maxima of the score: :func:`refit_starts`); ΔBIC = BIC(base) − BIC(base+term) with
   ``BIC = M·ln(RSS_w/M) + k·ln M``. Where none of them is both paying and confirmed, the
   next few eligible ones are refitted, until none is left.
-* Where the residual leaves no more degrees of freedom than the base has parameters (short
-  records), σ̂ is taken from the third difference of the recorded x
-  (:func:`difference_sigma`), the scores follow F(k, ν) instead of Beta, the BIC is that of
-  a known variance, ``RSS_w/σ̂² + k·ln M`` (:func:`bic_known`), and a term need leave only
-  one whitened dimension.
+* The variance of every statistic is the record's own σ̂_x² (:mod:`fricjax.diagnose.evidence`,
+  with ν = 2(σ̂/se)² degrees of freedom), not the residual's: the scores follow F(k, ν)
+  (:func:`~fricjax.diagnose.locate.score_pvalue` with ``external`` = ν), the BIC is that
+  of a known variance, ``RSS_w/σ̂² + k·ln M`` (:func:`bic_known`), a term need leave only
+  one whitened dimension, and the base's lack of fit, ``(RSS_w/dof)/σ̂² ~ F(dof, ν)``, is
+  tested on every record. Under a spectral whitener (a recorded drive input) the whitened
+  unit is the base residual's own, and the scores follow Beta with σ̂ from the residual.
 * Forward selection: add the best candidate while its p-value < α / (number of candidates)
   and ΔBIC > ``min_delta_bic``, the model leaves ``MIN_DOF_LEFT`` whitened degrees of
-  freedom (1 with σ̂ from the third difference), and, when a ``confirm`` is given (the
+  freedom (1 with σ̂ from the record), and, when a ``confirm`` is given (the
   diagnosis' held-out check, :class:`fricjax.diagnose.run.Confirm`), the check favours
   it; a candidate the check refuses is set aside and the next one that passes the tests is
   asked. Repeat from the enlarged model.
@@ -41,6 +42,7 @@ residual noise of white displacement noise is i.i.d. N(0, σ_x²):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
@@ -51,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 from scipy.optimize import lsq_linear
+from scipy.stats import chi2
 
 from fricjax.diagnose.catalogue import CATALOGUE, Candidate, is_stateful
 from fricjax.diagnose.errors_in_variables import (
@@ -61,6 +64,7 @@ from fricjax.diagnose.errors_in_variables import (
     score_bias,
     with_signals,
 )
+from fricjax.diagnose.evidence import Evidence, record_noise
 from fricjax.diagnose.locate import (
     compiled_jacfwd,
     default_whitener,
@@ -69,9 +73,8 @@ from fricjax.diagnose.locate import (
     score_pvalue,
 )
 from fricjax.diagnose.stages import Clock
-from fricjax.diagnose.whiten import Whitener, WhitenOp, robust_sigma
+from fricjax.diagnose.whiten import Whitener, WhitenOp, dc_scale
 from fricjax.model.system import Model
-from fricjax.output_error import noise_scale
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
 from fricjax.refine import RefineSettings, refine
@@ -166,6 +169,20 @@ def whitened_residual(
     return WhitenedResidual(equation_error(problem, model, spec), wh.module)
 
 
+class PinnedResidual(eqx.Module):
+    """``theta -> [W·r, mean(r)/s]`` [M + 1] (metres): the whitened residual with the
+    residual's mean beside it, scaled by its own noise ``s`` (:func:`~fricjax.diagnose.
+    whiten.dc_scale` [N/m]), so that the fit also honours the DC bin the whitener drops.
+    Under the noise model each entry has variance σ_x²."""
+
+    inner: WhitenedResidual
+    scale: Float[Array, ""]
+
+    def __call__(self, theta: Float[Array, " d"]) -> Float[Array, " M1"]:
+        r = self.inner.residual(theta)
+        return jnp.concatenate([self.inner.op(r), jnp.mean(r)[None] / self.scale])
+
+
 # -- helpers -------------------------------------------------------------------------------
 
 
@@ -176,7 +193,7 @@ def bic(rss_w: float, m: int, k: int) -> float:
 
 def bic_known(rss_w: float, m: int, k: int, sigma2: float) -> float:
     """``RSS/σ² + k·ln M``: the BIC of whitened residuals whose noise variance σ² is known
-    (estimated outside the residual, :func:`difference_sigma`), up to a constant."""
+    (the record's own, :mod:`fricjax.diagnose.evidence`), up to a constant."""
     return float(rss_w / sigma2 + k * np.log(m))
 
 
@@ -195,14 +212,6 @@ def base_range(j_w: Float[np.ndarray, "M d"]) -> Float[np.ndarray, "M r"]:
     do not count."""
     q, sv, _ = np.linalg.svd(j_w, full_matrices=False)
     return q[:, sv > 1e-10 * sv[0]]
-
-
-def variance_known(dof_left: int, n_free: int) -> bool:
-    """Whether the selection takes σ̂ from outside the residual (:func:`difference_sigma`)
-    and judges by :func:`bic_known`: where the whitened dimensions the base leaves,
-    ``dof_left``, are no more than its ``n_free`` parameters (the short records). Shared
-    with the benchmark's oracle, which must judge a record as the selection does."""
-    return dof_left <= n_free
 
 
 def _jacobian(fn: Any, theta: np.ndarray) -> np.ndarray:
@@ -351,8 +360,7 @@ def boxed_base(
     parameter whose step ends at its bound is held there, and only the rest of J_w is
     projected out. The score tests project out all of J_w, as if every parameter could
     move; on a short record the base absorbs an effect until some parameters reach their
-    box (0.272 s, hidden impact at c = 10: F0, Fc, Fs and two drive harmonics), and what
-    they would still have to take is left in span J, where no score sees it.
+    box, and what they would still have to take is left in span J, where no score sees it.
     """
     # in units of each parameter's box width: the columns span ~10 decades (N against rad)
     width = np.asarray(spec.upper - spec.lower, dtype=np.float64)
@@ -482,10 +490,8 @@ def refit_starts(
     local maxima (a broad peak's flank two steps out can be chosen).
 
     Why. A frequency, a location or a width makes the refit's cost multimodal, and the
-    grid's best point is not always in the true optimum's basin: a hidden 69 Hz harmonic on
-    a 0.272 s record scored highest at 73.9 Hz once centred on its errors-in-variables
-    mean (at 68.5 Hz uncentred), and the refit from 73.9 Hz stopped at 74.7 Hz with
-    ΔBIC 3.3; from 68.5 Hz it reached 68.8 Hz (truth 69.0) with ΔBIC 58.8.
+    grid's best point is not always in the true optimum's basin (the centred and the
+    uncentred maxima can lie in different ones).
     """
     names = list(points[0]) if points else []
     if not names:
@@ -549,11 +555,16 @@ def gls_fit(
     wh: Whitener,
     settings: RefineSettings | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Levenberg–Marquardt on the whitened residual from ``theta0``: (theta, RSS_w)."""
+    """Levenberg–Marquardt on the whitened residual from ``theta0``, its mean held by
+    :class:`PinnedResidual` where the whitener drops DC: (theta, RSS_w = ‖W·r(theta)‖² [m²],
+    the whitened part alone, the statistic every test compares)."""
     fn = whitened_residual(problem, model, spec, wh)
     theta0 = np.clip(theta0, spec.lower, spec.upper)
+    assert problem.preprocess is not None  # the whitener was made from it
+    scale = dc_scale(wh, problem.preprocess)
+    target = fn if scale == 0.0 else PinnedResidual(fn, jnp.asarray(scale, dtype=jnp.float64))
     out = refine(
-        fn,
+        target,
         jnp.asarray(theta0),
         spec.lower,
         spec.upper,
@@ -561,7 +572,11 @@ def gls_fit(
         # each (model, whitener) pair is fitted once or twice: compile time dominates
         fast_compile=True,
     )
-    return np.asarray(out.x), float(out.cost_after)
+    theta = np.asarray(out.x)
+    if scale == 0.0:
+        return theta, float(out.cost_after)
+    r_w = np.asarray(_eval(fn, jnp.asarray(theta)))
+    return theta, float(r_w @ r_w)
 
 
 def refit_candidate(
@@ -601,6 +616,48 @@ def refit_candidate(
     return Refit(cand.effect, model_e, spec_e, theta_e, rss, b, bic_base - b, own)
 
 
+def best_supported(
+    problem: Problem,
+    wh: Whitener,
+    thetas: Sequence[np.ndarray],
+    rss_min: float,
+    evidence: Evidence,
+    alpha: float,
+) -> np.ndarray:
+    """The base parameters of least EMS [N²] among ``thetas`` [d] that the whitened metric
+    cannot tell from its least-squares fit (RSS_w ``rss_min``): those inside the fit's
+    likelihood-ratio confidence region, ``(RSS_w(θ) − rss_min)/σ² ≤ χ²_{r, 1−α}`` with r the
+    rank of the whitened Jacobian (σ² the record's σ̂_x², or under a spectral whitener the
+    fit's own ``rss_min/(dof − r)``). The first entry is the fit itself.
+
+    Why. Every θ in that region explains the record as well as the fit does, as far as the
+    noise lets the tests see; the whitened metric weighs only the band where the noise is
+    known, so on a short record the fit spends its freedom on that band and can leave the
+    user's own metric, the EMS, far worse than identify's. Of the equally supported fits,
+    the one that is also best on the EMS is the base the diagnosis reports and tests
+    from; the tests' statistics project the fitted directions out and compare RSS_w
+    against ``rss_min``, so the choice within the region does not enter them."""
+    spec = problem.spec
+    fn = whitened_residual(problem, problem.model, spec, wh)
+    j_w = _jacobian(fn, thetas[0])
+    rank = int(base_range(j_w).shape[1])
+    if wh.spectral:
+        sigma2 = rss_min / max(wh.dof - rank, 1)
+    else:
+        sigma2 = evidence.sigma_x**2
+    bar = float(chi2.ppf(1.0 - alpha, max(rank, 1)))
+    best, best_ems = thetas[0], problem.ems(thetas[0])
+    for th in thetas[1:]:
+        th = np.clip(th, spec.lower, spec.upper)
+        r_w = np.asarray(_eval(fn, jnp.asarray(th)))
+        if (float(r_w @ r_w) - rss_min) / sigma2 > bar:
+            continue
+        ems = problem.ems(th)
+        if ems < best_ems:
+            best, best_ems = th, ems
+    return np.asarray(best)
+
+
 def rebase(
     problem: Problem, model: Model, spec: ParamSpec, refit: Refit, wh: Whitener
 ) -> tuple[np.ndarray, float]:
@@ -609,42 +666,21 @@ def rebase(
     return gls_fit(problem, model, spec, start, wh)
 
 
-def difference_sigma(x: Float[np.ndarray, " n"]) -> tuple[float, int]:
-    """σ̂_x [m] of white displacement noise from the third difference of the recorded x
-    (:func:`fricjax.output_error.noise_scale`, ``std(Δ³x)/√20``; the motion adds
-    ``jerk·dt³``, so it errs high) and its degrees of freedom ν, ``σ̂²/σ² ≈ χ²_ν/ν``.
-
-    ν: Δ³ of white noise is a moving average with lag correlations −3/4, 3/10, −1/20, so
-    ``Var(σ̂²)/σ⁴ = 2·(1 + 2·Σρ²)/n`` and ``ν = n/2.31``.
-    """
-    x = np.asarray(x, dtype=np.float64)
-    rho = np.array([-15.0, 6.0, -1.0]) / 20.0
-    nu = int((x.shape[0] - 3) / (1.0 + 2.0 * float(rho @ rho)))
-    return noise_scale(x), max(nu, 1)
-
-
 # Residual degrees of freedom a model must leave for its σ̂² and its mismatch maps
-# (:func:`~fricjax.diagnose.locate.locate_plan` needs 2): on a 0.272 s record (48 whitened
-# dimensions, some of them the samples at rest) a third term once left 1, and the
-# diagnosis failed in its final maps instead of naming two terms; on the concealed
-# benchmark's 0.272 s periodic case at c = 10 (30 whitened dimensions) the bump it was
-# wrongly named left 1.
+# (:func:`~fricjax.diagnose.locate.locate_plan` needs 2).
 MIN_DOF_LEFT = 2
 
 # A candidate whose signature overlaps a refused one's by more than this (|cos| of their
 # whitened, projected signatures) and that gains no more than it would only re-explain the
-# structure the held-out check refused (a 2 s record with hidden quadratic drag: drag
-# refused at -8.9 % on the last 30 %, then stribeck, ΔBIC 20 against 54, accepted); it is
-# not asked. One that gains more explains more than the refused one did (0.272 s, hidden
-# periodic force: a bump refitted first, ΔBIC 136, refused; the periodic force, refitted
-# after it, 247).
+# structure the judge refused; it is not asked. One that gains more explains more than the
+# refused one did. (0.5: more than half of either signature is the other's.)
 SAME_STRUCTURE = 0.5
 
 
 def lack_of_fit_p(rss: float, dof: int, sigma2: float, nu: int) -> float:
     """p-value of the base's excess over a noise variance known from outside the residual:
     ``F = (RSS_w/dof)/σ̂²`` against ``F(dof, ν)`` (σ̂² with ν degrees of freedom,
-    :func:`difference_sigma`); ``RSS_w`` [m²] the base's whitened residual, ``dof`` the
+    :mod:`fricjax.diagnose.evidence`); ``RSS_w`` [m²] the base's whitened residual, ``dof`` the
     whitened dimensions its Jacobian leaves."""
     if dof < 1 or sigma2 <= 0:
         return 1.0
@@ -675,7 +711,7 @@ def forward_select(
     noise: str = "auto",
     eiv: bool = True,
     starts: Sequence[np.ndarray] = (),
-    model_free_sigma: bool = True,
+    evidence: Evidence | None = None,
     confirm: Callable[
         [tuple[Model, ParamSpec, np.ndarray], Refit], tuple[bool, dict[str, Any]]
     ] = lambda current, refit: (True, {}),
@@ -686,9 +722,10 @@ def forward_select(
     ``eiv``: centre the scores on their errors-in-variables bias
     (:mod:`fricjax.diagnose.errors_in_variables`; no effect under spectral noise);
     ``starts``: further start points [d] of the base's GLS fit, the lowest RSS_w is kept
-    (the whitener is always that of ``theta``); ``model_free_sigma``: where the residual
-    leaves no more degrees of freedom than the base has parameters, σ̂ of the tests is
-    :func:`difference_sigma` of the recorded x (F law) instead of the residual's (Beta).
+    (the whitener is always that of ``theta``); ``evidence``: the record's own noise
+    (default :func:`~fricjax.diagnose.evidence.record_noise`), whose σ̂_x² with its ν
+    degrees of freedom is the variance of every test and BIC (F law); only a spectral
+    whitener (a recorded drive input) takes its scale from the whitened residual (Beta law).
 
     ``confirm(current, refit) -> (ok, report)``: the held-out check, part of the stopping
     rule (default: none, every candidate that passes the tests is ``ok``). A candidate that
@@ -701,19 +738,21 @@ def forward_select(
     tested and never named."""
     clock = clock or Clock()
     model, spec = problem.model, problem.spec
+    evidence = evidence or record_noise(problem)
     with clock.stage("whitening"):
-        wh = default_whitener(problem, theta, noise)
+        wh = default_whitener(problem, theta, noise, evidence.sigma_x)
         # A base left in a poorer minimum than the data allow leaves its misfit in every
         # test, where the most flexible candidate takes it for physics.
-        theta, rss = min(
+        theta_gls, rss_floor = min(
             (gls_fit(problem, model, spec, th, wh) for th in (theta, *starts)),
             key=lambda f: f[1],
         )
+        theta = best_supported(problem, wh, [theta_gls, theta, *starts], rss_floor, evidence, alpha)
     base_theta = theta.copy()
     steps: list[Step] = []
     used: set[str] = set()
-    sigma = float(np.sqrt(rss / max(wh.dof - spec.n_free, 1)))
     first_known: float | None = None
+    sigma = math.nan
     for _ in range(max_terms):
         with clock.stage("scores"):
             fn = whitened_residual(problem, model, spec, wh)
@@ -722,39 +761,36 @@ def forward_select(
             q_base = base_range(j_w)
             r_perp = project_out(q_base, r_w)
             dof = max(wh.dof - q_base.shape[1], 1)
-            sigma2 = float(r_perp @ r_perp / dof)
-            external = 0
-            if variance_known(dof, spec.n_free) and model_free_sigma:
-                # On a short record the base takes most of the whitened dimensions (0.272 s:
-                # 7-22 left of 48) and what it leaves of an effect sits in the few that carry
-                # σ̂: on 22 such records σ̂/σ_x had median 2.05 (up to 24), so c = 10 scored at
-                # noise level. The third difference of x knows nothing of the model: 0.90-1.15
-                # σ_x on all 34 of them.
-                sigma2, external = difference_sigma(problem.x)
-                sigma2 = sigma2**2
+            if wh.spectral:
+                # a recorded drive input: the whitened unit is the base residual's spectrum
+                sigma2, external = float(r_perp @ r_perp / dof), 0
+            else:
+                # the record's own displacement noise is the whitened variance
+                sigma2, external = evidence.sigma_x**2, evidence.nu
             # With σ̂ from outside the residual, the BIC is that of a known variance: the
-            # profile form M·ln(RSS/M) divides by what the few dimensions left happen to hold
-            # (30 whitened dimensions, 26 base parameters: a three-parameter term leaves one),
-            # and the residual's degrees of freedom are needed for nothing but the maps.
+            # profile form M·ln(RSS/M) divides by what the residual happens to hold.
             known = sigma2 if external else None
             if not steps:
-                first_known = known
+                first_known, sigma = known, math.sqrt(sigma2)
             min_left = 1 if external else MIN_DOF_LEFT
+            # the base's least RSS_w: at the first step that of its GLS fit, which the
+            # chosen base (best_supported) may exceed by less than its confidence region
+            rss_base = min(float(r_w @ r_w), rss_floor)
+            rss_floor = math.inf
             bic_base = (
-                bic(float(r_w @ r_w), wh.dof, spec.n_free)
+                bic(rss_base, wh.dof, spec.n_free)
                 if known is None
-                else bic_known(float(r_w @ r_w), wh.dof, spec.n_free, known)
+                else bic_known(rss_base, wh.dof, spec.n_free, known)
             )
-            bias = (
-                score_bias(problem, model, spec, theta, wh, robust_sigma(wh, r_w) ** 2)
-                if eiv
-                else None
-            )
+            bias = score_bias(problem, model, spec, theta, wh, sigma2) if eiv else None
             pool = [cd for cd in candidates if cd.effect not in used and cd.applicable(model, spec)]
             if not pool:
                 break
-            # Short records only: there the base fills its box to absorb an effect.
-            boxed = boxed_base(j_w, r_w, theta, spec) if external else None
+            # A short record leaves no more whitened dimensions than the base has
+            # parameters: there the base fills its box to absorb an effect, and Wilks'
+            # calibration of a refit's ratio needs a well-determined base.
+            short = dof <= spec.n_free
+            boxed = boxed_base(j_w, r_w, theta, spec) if short and external else None
             scores = []
             for i, cd in enumerate(pool):
                 if clock.over("scores"):
@@ -785,25 +821,19 @@ def forward_select(
             if not scores:
                 break
         by_name = {cd.effect: cd for cd in pool}
-        rss_base = float(r_w @ r_w)
         done: dict[str, Refit] = {}
-        # Wilks' calibration of the ratio needs a well-determined base: on a 0.272 s record
-        # (dof 7-22 after 26 base parameters) a null's refit gained 10.4 σ² (p = 1e-4,
-        # held-out -25), so short records keep the score test, unless the base leaves
-        # significant structure there (below).
-        by_lr = dof > spec.n_free
+        # Short records keep the score test (Wilks needs a well-determined base), unless
+        # the base leaves significant structure there (below).
+        by_lr = not short
         # The whole residual, not only its part outside span J: a base held at its box (an
         # effect absorbed until amplitudes hit their bounds) leaves misfit along J too.
-        lof_p = lack_of_fit_p(float(r_w @ r_w), dof, sigma2, external) if external else 1.0
-        lof_excess = float(r_w @ r_w) / sigma2 - dof if external else 0.0
+        lof_p = lack_of_fit_p(rss_base, dof, sigma2, external) if external else 1.0
+        lof_excess = rss_base / sigma2 - dof if external else 0.0
         # On a short record the base moves far to absorb an effect, to the edges of its
         # box, and the linearised scores, which see only the residual outside span J, miss
-        # what it leaves: a hidden impact at c = 10 left RSS_w = 168 σ̂² where 8 dimensions
-        # are left (2.97 σ̂² of it outside span J), and no candidate scored above 2.5. Where that
-        # excess is significant every candidate is refitted and judged by its likelihood
-        # ratio; on the 12 null 0.272 s records of the benchmark the smallest p of the
-        # excess was 0.031.
-        refit_all = bool(external) and lof_p < alpha
+        # what it leaves; where the base fails its lack-of-fit test against the record's
+        # noise, every candidate is refitted and judged by its likelihood ratio.
+        refit_all = short and bool(external) and lof_p < alpha
         lr_unfit: set[str] = set()
         for i, sc in enumerate(scores):
             if (by_lr and by_name[sc.effect].by_refit) or refit_all:
@@ -817,8 +847,8 @@ def forward_select(
                         problem, model, spec, theta, by_name[sc.effect], sc, wh, bic_base, known
                     )
                 # The refit may have left the base's basin for a better one that the base
-                # alone reaches too (short records: a null's "gain" of 22 σ² on 0.272 s):
-                # the ratio is taken against the base refitted from the refit's end point.
+                # alone reaches too: the ratio is taken against the base refitted from the
+                # refit's end point.
                 rss_ref = min(rss_base, rebase(problem, model, spec, rf, wh)[1])
                 bic_ref = (
                     bic(rss_ref, wh.dof, spec.n_free)
@@ -876,9 +906,8 @@ def forward_select(
         chosen, report = None, {}
         # On a short record the linearised ranking can be far off and a refit is cheap: all
         # eligible candidates are refitted before any is asked, so the best true ΔBIC is
-        # asked first (0.272 s, hidden periodic force, c = 10: refitted in pairs, a bump of
-        # ΔBIC 233 was asked before the periodic term's 344).
-        batch = len(queue) if external else max(n_refit, 1)
+        # asked first.
+        batch = len(queue) if short else max(n_refit, 1)
         while True:
             for sc in queue[:batch]:
                 if clock.over("refits"):
@@ -935,10 +964,8 @@ def forward_select(
             if chosen is not None or not queue:
                 break
             # None of the refits so far is both paying and confirmed, and eligible
-            # candidates are left: on a short record the linearised ranking can be far off
-            # (0.272 s, hidden periodic force, c = 5: the two refitted, a drift and a
-            # presliding lag, scored 34.9 and 34.5 and gained ΔBIC -0.8 and -4.9), so the
-            # next ones are refitted before the step gives up.
+            # candidates are left: the linearised ranking can be far off, so the next ones
+            # are refitted before the step gives up.
         if not refits:  # a time limit left every eligible candidate unrefitted
             for sc in scores:
                 sc.delta_bic_linear = float(lin[sc.effect])

@@ -54,11 +54,12 @@ twin) that ``K·e`` does not contain. Spikes are broadband in r while ``|H|`` va
 frequency, so they swamp the low bins: on the 2 s paper twin at its true parameters
 (σ_x = 24 µm, exact trajectory plus preprocessed noise, 51 reversals) the whitened power was
 16 000 σ_x² per bin below 2 Hz, 1 600 at 2–5 Hz, 360 at 5–10 Hz, 40 at 10–20 Hz, 5 at 20–50 Hz
-and ≈ 1 above. ``exclude`` (e.g. :func:`reversal_mask`) treats such samples as missing: the
-whitened vector is projected off ``W·e_i`` for every excluded sample i, which removes the
-spikes exactly (they live on those samples) at the price of one degree of freedom each
-(``dof = M − rank``); with ``|v| < 4·σ_v`` excluded (127 of 1 980 samples) the same records
-gave 1.6 σ_x² below 2 Hz (time-varying Stribeck slope, not modelled), 1.0–1.1 elsewhere.
+and ≈ 1 above. ``exclude`` (the near-rest band of :mod:`fricjax.diagnose.evidence`) treats
+such samples as missing: the whitened vector is projected off ``W·e_i`` for every excluded
+sample i, which removes the spikes exactly (they live on those samples) at the price of one
+degree of freedom each (``dof = M − rank``); with ``|v| < 4·σ_v`` excluded (127 of 1 980
+samples) the same records gave 1.6 σ_x² below 2 Hz (time-varying Stribeck slope, not
+modelled), 1.0–1.1 elsewhere.
 A plant that sticks at reversals has far more such samples (198–214 of 960 on 1 s records of
 the concealed benchmark), and one degree of freedom each would leave little to test. Spikes
 on neighbouring samples share a few low-frequency directions, so ``spike`` (the largest
@@ -89,9 +90,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 from scipy import sparse
-from scipy.stats import chi2
 
-from fricjax.data.preprocess import PreprocessSettings, derivatives, noise_gains
+from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.errors import FricjaxError, where
 from fricjax.problem import Problem
 
@@ -338,7 +338,7 @@ def make_whitener(
         mass: moving mass [kg] (default ``problem.spec["mass"].init``; pass the fitted
             mass when it is free).
         exclude: optional bool mask [n] of samples treated as missing (e.g.
-            :func:`reversal_mask`); default none.
+            :func:`~fricjax.diagnose.evidence.near_rest_band`); default none.
         spike: largest residual spike an excluded sample can carry, over σ_x [1/m·N]
             (``2·|F_static|/σ_x`` for a Coulomb sign flip). Given, only the whitened
             directions of the excluded samples along which such a spike would leave more
@@ -616,6 +616,24 @@ def _edge_correction(
     return Q @ V[:, active], s[active]
 
 
+def dc_scale(wh: Whitener, settings: PreprocessSettings) -> float:
+    """Noise of the residual's mean per unit of displacement noise [N/m]: ``‖Kᵀ·1‖/n`` with
+    ``K = m·L_a + c·L_v`` the exact noise operator of the record (:func:`noise_operators`),
+    so ``std(mean r_noise) = σ_x·dc_scale``; 0 where the whitener keeps the DC bin itself
+    (a spectral whitener) and the mean needs no separate weight.
+
+    Why. ``H(0) = 0``: the derivatives of x carry almost no noise at DC, so the whitener
+    drops that bin, and with it every constraint on the residual's mean: an offset, and any
+    combination of parameters that moves only the mean, is then free in the whitened metric
+    (the 0.272 s paper twin's GLS base left a mean residual of 225 N, EMS 62 000 N², where
+    identify reaches 4 504). The mean is measured with the tiny noise this gives it."""
+    if wh.spectral or (wh.keep.size and wh.keep[0] == 0):
+        return 0.0
+    l_v, l_a = noise_operators(settings, wh.dt, wh.n)
+    k_t_one = wh.mass * (l_a.T @ np.ones(wh.n)) + wh.damping * (l_v.T @ np.ones(wh.n))
+    return float(np.linalg.norm(k_t_one)) / wh.n
+
+
 def _norm(wh: Whitener) -> np.ndarray:
     edge = np.zeros(wh.keep.size, dtype=bool)
     edge[list(wh.drop_imag)] = True
@@ -646,24 +664,6 @@ def linear_damping(problem: Problem, theta: Float[np.ndarray, " d"]) -> float:
     """Linearised damping ``c = mean over samples of ∂F_f/∂v`` [N·s/m] of ``problem``'s
     model at ``theta`` (:func:`friction_slope`)."""
     return float(np.mean(friction_slope(problem, theta)))
-
-
-def reversal_mask(
-    problem: Problem, sigma_x: float, *, kappa: float = 4.0
-) -> Float[np.ndarray, " n"]:
-    """Samples near velocity reversals, where noise can flip ``sgn(v)``: ``|v| < κ·σ_v``
-    with ``σ_v = σ_x·(σ_v/σ_x)`` the preprocessing's white-noise gain (bool [n]).
-
-    ``sigma_x`` [m]: displacement noise, e.g. :func:`robust_sigma` of a first whitening.
-    At κ = 4 a flip outside the mask has probability < 6.4e-5 per sample.
-    """
-    settings = problem.preprocess
-    if settings is None:
-        raise FricjaxError(f"{where(problem.source or None, 'preprocess')}: missing")
-    t = np.asarray(problem.t)
-    dt = float((t[-1] - t[0]) / (t.shape[0] - 1))
-    gain_v, _ = noise_gains(settings, 1.0 / dt)
-    return np.abs(np.asarray(problem.v)) < kappa * float(sigma_x) * gain_v
 
 
 def noise_spectrum(
@@ -702,18 +702,3 @@ def noise_spectrum(
         np.log(np.maximum(f, f[1] if f.shape[0] > 1 else 1.0)), np.log(centres), np.log(levels)
     )
     return np.exp(log_s)
-
-
-def robust_sigma(wh: Whitener, r_w: Float[np.ndarray, " M"]) -> float:
-    """σ̂_x [m] from a whitened residual, insensitive to a minority of corrupted entries:
-    ``sqrt(median(z²)/0.4549)`` (0.4549 = median of χ²₁) over the upper half of the kept
-    band, where reversal spikes and derivative bias weigh least (module docstring)."""
-    z = np.asarray(r_w, dtype=np.float64)
-    upper = wh.freqs >= np.median(wh.freqs)
-    use = np.concatenate([upper, upper[wh.im_keep]])
-    var = np.ones(wh.M)
-    if wh.N.shape[1]:
-        # Projected entries have variance 1 − ‖N_i‖²; rescale them before the median.
-        var = 1.0 - np.sum(wh.N**2, axis=1)
-        use &= var > 0.5
-    return float(np.sqrt(np.median(z[use] ** 2 / var[use]) / chi2.ppf(0.5, 1)))

@@ -18,11 +18,10 @@ from fricjax.diagnose.report import (
     fit_rows,
     fit_sentence,
     length,
-    on_bound,
     params_text,
-    rest_band,
     where_text,
 )
+from fricjax.diagnose.run import at_bounds, on_bound
 from fricjax.params import Param, ParamSpec
 from fricjax.report.document import Heading, Image, Para, Table, to_html, to_markdown
 from fricjax.report.plots import plt, save
@@ -73,6 +72,9 @@ def test_a_parameter_on_its_bound_is_named_as_such() -> None:
     assert on_bound(spec, "mass_eps", 0.29) == ""
     fixed = ParamSpec((Param("mass", "kg", 45.0, 45.0, 45.0, free=False),))
     assert on_bound(fixed, "mass", 45.0) == ""  # a fixed value is given, not fitted
+    # diagnosis.json flags a finding's parameters on a bound as such
+    assert at_bounds(spec, {"mass_eps": 0.3}) == {"mass_eps": "upper"}
+    assert at_bounds(spec, {"mass_eps": 0.1}) == {}
 
 
 def test_a_finding_size_on_its_bound_is_reported_as_a_limit_with_its_range() -> None:
@@ -92,14 +94,6 @@ def test_locations_carry_their_units() -> None:
     text = where_text({"velocity_mps": [0.0, 0.04], "frequency_hz": 60.03})
     assert text == "v from 0 to 0.04 m/s; f = 60.03 Hz"
     assert "7 velocity reversals" in where_text({"reversals_s": [1, 2, 3, 4, 5, 6, 7]})
-
-
-def test_the_near_rest_band_is_the_speed_of_the_fastest_marked_sample() -> None:
-    v = np.array([-0.2, -0.01, 0.0, 0.004, 0.03, 0.2])
-    rest = np.abs(v) < 0.02
-    diag = SimpleNamespace(problem=SimpleNamespace(v=v, rest=rest))
-    assert rest_band(diag) == pytest.approx(0.01)
-    assert rest_band(SimpleNamespace(problem=SimpleNamespace(v=v, rest=None))) is None
 
 
 def test_markdown_and_html_say_the_same_and_the_html_needs_nothing_outside(tmp_path: Path) -> None:

@@ -15,13 +15,13 @@ import pytest
 import fricjax  # noqa: F401  (float64 on)
 from fricjax.data.preprocess import PreprocessSettings, derivatives, noise_gains
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH
+from fricjax.diagnose.evidence import near_rest_band
 from fricjax.diagnose.whiten import (
+    dc_scale,
     linear_damping,
     make_whitener,
     noise_operators,
     noise_response,
-    reversal_mask,
-    robust_sigma,
     stop_band_hz,
 )
 from fricjax.errors import FricjaxError
@@ -287,7 +287,7 @@ def test_velocity_reversals_break_the_linear_model_and_exclusion_restores_it(
         r = pb.residual(theta)
         z = wh(r) / SIGMA_X
         plain.append(np.mean(z[low] ** 2))
-        mask = reversal_mask(pb, SIGMA_X)
+        mask = near_rest_band(pb, SIGMA_X).mask
         w_ex = make_whitener(pb, damping=c, exclude=mask)
         excluded.append(np.sum((w_ex(r) / SIGMA_X) ** 2))
         dofs.append(w_ex.dof)
@@ -310,7 +310,7 @@ def test_a_stick_phase_costs_a_few_degrees_of_freedom_not_one_per_sample(
     spike = 2.0 * PAPER_TRUTH["Fs"] / SIGMA_X
     rss, dofs, exact_dofs = [], [], []
     for pb in records:
-        mask = reversal_mask(pb, SIGMA_X)
+        mask = near_rest_band(pb, SIGMA_X).mask
         r = pb.residual(theta)
         w_tr = make_whitener(pb, damping=c, exclude=mask, spike=spike)
         rss.append(np.sum((w_tr(r) / SIGMA_X) ** 2))
@@ -323,16 +323,20 @@ def test_a_stick_phase_costs_a_few_degrees_of_freedom_not_one_per_sample(
     assert capped.dof == capped.M - 3
 
 
-def test_robust_sigma_recovers_the_noise_level(
-    coulomb_records: tuple[Problem, list[Problem], np.ndarray],
-) -> None:
-    _, records, theta = coulomb_records
-    pb = records[0]
-    wh = make_whitener(pb, damping=linear_damping(pb, theta))
-    r_w = wh(pb.residual(theta))
-    # The plain mean square is dominated by the reversal spikes; the median is not.
-    assert np.sqrt(np.mean(r_w**2)) > 3 * SIGMA_X
-    assert abs(robust_sigma(wh, r_w) / SIGMA_X - 1.0) < 0.25
+def test_the_mean_of_the_residual_noise_has_the_scale_the_fit_pins_it_by() -> None:
+    # The whitener drops DC (H(0) = 0); the base fit holds the residual's mean instead,
+    # weighted by std(mean r_noise) = σ_x·dc_scale. Monte Carlo of m·a_e + c·v_e.
+    n_full, c, draws = 272, 3750.0, 800
+    wh = make_whitener(bare_problem(n_full - 20, PAPER), damping=c)
+    assert wh.keep[0] > 0  # DC is not among the whitened bins
+    rng = np.random.default_rng(11)
+    t = np.arange(n_full) * DT
+    means = np.empty(draws)
+    for j in range(draws):
+        d = derivatives(t, rng.normal(0.0, SIGMA_X, n_full), PAPER)
+        means[j] = np.mean(MASS * d.a + c * d.v)
+    ratio = float(np.std(means) / (SIGMA_X * dc_scale(wh, PAPER)))
+    assert abs(ratio - 1.0) < 4 / math.sqrt(2 * draws)
 
 
 def test_user_errors_name_the_field() -> None:
