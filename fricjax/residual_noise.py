@@ -62,12 +62,11 @@ _KEY = 0
 def _tangents(
     residual: EquationError,
     theta: Float[Array, " d"],
-    jac: Float[Array, "n d"],
     dx: Float[Array, "K m"],
     dv: Float[Array, "K m"],
     da: Float[Array, "K m"],
-) -> tuple[Float[Array, "K d"], Float[Array, ""]]:
-    """``(Jᵀ δr_k)_k`` [K, d] and ``Σ_k ‖δr_k‖²`` for signal perturbations (δx, δv, δa)_k."""
+) -> Float[Array, "K n"]:
+    """The residual's changes δr_k [K, n] for signal perturbations (δx, δv, δa)_k [K, m]."""
 
     def r_of(x: Array, v: Array, a: Array) -> Array:
         return eqx.tree_at(lambda m: (m.x, m.v, m.a), residual, (x, v, a))(theta)
@@ -75,8 +74,7 @@ def _tangents(
     def one(ex: Array, ev: Array, ea: Array) -> Array:
         return jax.jvp(r_of, (residual.x, residual.v, residual.a), (ex, ev, ea))[1]
 
-    dr = jax.vmap(one)(dx, dv, da)
-    return dr @ jac, jnp.sum(dr * dr)
+    return jax.vmap(one)(dx, dv, da)
 
 
 _tangents_jit = eqx.filter_jit(_tangents)
@@ -117,8 +115,8 @@ def residual_noise(
     rng = np.random.default_rng(_KEY)
     residual = problem.residual_fn
     theta_j = jnp.asarray(theta, dtype=jnp.float64)
-    jac_j = jnp.asarray(jac, dtype=jnp.float64)
-    w_parts, total = [], 0.0
+    jac = np.asarray(jac, dtype=np.float64)
+    w_parts, sq_parts, dr_parts = [], [], []
     for start in range(0, count, _CHUNK):
         rows = []
         for k in range(start, start + _CHUNK):
@@ -133,14 +131,24 @@ def residual_noise(
             d = derivatives(t_raw, e, settings)
             rows.append((d.x, d.v, d.a))
         dx, dv, da = (np.stack(c) for c in zip(*rows, strict=True))
-        w, ss = _tangents_jit(residual, theta_j, jac_j, dx, dv, da)
-        w_parts.append(np.asarray(w)[: max(0, min(_CHUNK, count - start))])
-        total += float(ss)
-    w = np.concatenate(w_parts)
-    var = noise.sigma**2 * scale**2 / (1.0 if exact else count)
+        dr = np.asarray(_tangents_jit(residual, theta_j, dx, dv, da))[: min(_CHUNK, count - start)]
+        w_parts.append(dr @ jac)
+        sq_parts.append(np.sum(dr * dr, axis=1))
+        if exact:
+            dr_parts.append(dr)
+    w, sq = np.concatenate(w_parts), np.concatenate(sq_parts)
+    var = noise.sigma**2 * scale**2
+    if exact:  # Σ = σ²·DᵀD with D = [G e_k]_k, so tr Σ² = σ⁴‖D Dᵀ‖²_F
+        dmat = np.concatenate(dr_parts)
+        trace_sq = var**2 * float(np.sum((dmat @ dmat.T) ** 2))
+    else:  # ‖G ε‖² has variance 2 tr(GGᵀ)² for Gaussian ε
+        var /= count
+        trace_sq = (var * count) ** 2 * float(np.var(sq, ddof=1)) / 2.0
     how = "exact" if exact else f"{count} draws"
     label = f"x noise {noise.describe('m')}; propagated through the preprocessing ({how})"
-    return ResidualNoise(jsj=var * (w.T @ w), trace=var * total, label=label)
+    return ResidualNoise(
+        jsj=var * (w.T @ w), trace=var * float(np.sum(sq)), trace_sq=trace_sq, label=label
+    )
 
 
 def stacked_noise(
@@ -163,5 +171,8 @@ def stacked_noise(
         parts.append(part)
     labels = "; ".join(f"[{k}] {p.label}" for k, p in enumerate(parts))
     return ResidualNoise(
-        jsj=sum(p.jsj for p in parts), trace=sum(p.trace for p in parts), label=labels
+        jsj=sum(p.jsj for p in parts),
+        trace=sum(p.trace for p in parts),
+        trace_sq=sum(p.trace_sq for p in parts),
+        label=labels,
     )
