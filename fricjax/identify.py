@@ -398,6 +398,10 @@ def _output_error_polish(
         "oe_hold": settings.hold,
         "oe_defect_weight": settings.defect_weight,
         "cond": fit.cond,
+        # its σ is the output-error fit's own, from the position residual
+        "sigma_method": GAUSS_NEWTON,
+        "dispersion": float("nan"),
+        "sigma_noise": "output-error fit: white position residual assumed",
         "wall_time": time.perf_counter() - started,
     }
     return replace(

@@ -190,9 +190,8 @@ def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
 
 
 def _sigma_rows(a: dict) -> list[tuple[str, str]]:
-    """Which σ the run reports (``fricjax.identify.sigma_attrs``); none for older files
-    and output-error runs, whose σ is their own fit's."""
-    if "sigma_method" not in a or "oe_cost" in a:
+    """Which σ the run reports (``fricjax.identify.sigma_attrs``); none for older files."""
+    if "sigma_method" not in a:
         return []
     rows = [("σ", f"{a['sigma_method']}: {a.get('sigma_noise', '')}")]
     if np.isfinite(float(a.get("dispersion", float("nan")))):
