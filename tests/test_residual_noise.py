@@ -5,6 +5,7 @@ agrees with the exact sum; a residual holding more than the noise widens σ."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -110,3 +111,14 @@ def test_a_left_out_term_widens_sigma_with_the_dispersion():
     (phi_1, std_1), (phi_2, std_2) = found
     assert 1.2 < phi_1 < phi_2
     assert np.all(std_2 > 2 * std_1)
+
+
+def test_without_the_preprocessing_settings_sigma_stays_gauss_newton(seeds):
+    problem, x, r, jac = seeds[0]
+    bare = dataclasses.replace(problem, preprocess=None)
+    assert residual_noise(bare, x, jac) is None
+    unc = uncertainty_at(r, jac, x, problem.spec.lower, problem.spec.upper, noise=None)
+    assert unc.method == GAUSS_NEWTON and math.isnan(unc.dispersion)
+    # σ² = E/(n − d)·(JᵀJ)⁻¹ for the offset, from the residual alone
+    want = math.sqrt(r @ r / (r.size - 3) * np.linalg.inv(jac.T @ jac)[0, 0])
+    assert unc.std[0] == pytest.approx(want, rel=1e-9)
