@@ -65,6 +65,7 @@ from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings, prng_key
 from fricjax.problem import Problem, build_problem
 from fricjax.refine import RefineSettings, _checked, _refine_batch, cluster_minima, uncertainty_at
+from fricjax.residual_noise import residual_noise
 from fricjax.search.chains import (
     _checked_t0,
     _Control,
@@ -408,7 +409,15 @@ def _member_fit(
         _checked_t0(t0, settings.anneal, spec.source)
         if not np.isfinite(cost):
             raise FricjaxError(f"{member.name}: cost not finite at the best point found")
-        unc = uncertainty_at(r, jac, x, spec.lower, spec.upper, names=list(spec.free_names))
+        unc = uncertainty_at(
+            r,
+            jac,
+            x,
+            spec.lower,
+            spec.upper,
+            names=list(spec.free_names),
+            noise=residual_noise(problem, x, jac),
+        )
     except FricjaxError as err:
         return failed(member, str(err), sha256=sha, shard=number)
     minima = cluster_minima(chain_x, chain_cost, spec.lower, spec.upper)

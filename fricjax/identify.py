@@ -39,6 +39,7 @@ from fricjax.limits import check_chains
 from fricjax.output_error import OutputErrorSettings, fit_output_error
 from fricjax.problem import Problem
 from fricjax.refine import (
+    GAUSS_NEWTON,
     RefineSettings,
     Uncertainty,
     cluster_minima,
@@ -48,6 +49,7 @@ from fricjax.refine import (
     uncertainty_at,
     value_and_jacobian,
 )
+from fricjax.residual_noise import residual_noise
 from fricjax.search.annealing import AnnealSettings
 from fricjax.search.chains import (
     METHODS,
@@ -306,7 +308,15 @@ def identify(
             ),
             "fricjax-uncertainty",
         )
-        unc = uncertainty_at(r, jac, best_x, lower, upper, names=list(spec.free_names))
+        unc = uncertainty_at(
+            r,
+            jac,
+            best_x,
+            lower,
+            upper,
+            names=list(spec.free_names),
+            noise=residual_noise(problem, best_x, jac),
+        )
     except KeyboardInterrupt:  # keep the point found; its uncertainty stays unknown (NaN)
         interrupted = True
         unc = _no_uncertainty(list(spec.free_names))
@@ -350,6 +360,7 @@ def identify(
             "n_devices": search.n_devices,
             "objective": "equation error (seed eq. 11)",
             "cond": float(unc.cond),
+            **sigma_attrs(unc),
             "separable": sep is not None,
             "search_space": f"separable ({sep.describe()})" if sep is not None else f"full ({d}-D)",
         },
@@ -387,6 +398,10 @@ def _output_error_polish(
         "oe_hold": settings.hold,
         "oe_defect_weight": settings.defect_weight,
         "cond": fit.cond,
+        # its σ is the output-error fit's own, from the position residual
+        "sigma_method": GAUSS_NEWTON,
+        "dispersion": float("nan"),
+        "sigma_noise": "output-error fit: white position residual assumed",
         "wall_time": time.perf_counter() - started,
     }
     return replace(
@@ -433,6 +448,21 @@ def _separable_search(
     chain_x = np.asarray(chain_x)
     i = int(np.argmin(found.chain_cost))
     return found._replace(best_x=chain_x[i].copy(), chain_x=chain_x)
+
+
+def sigma_attrs(unc: Uncertainty) -> dict[str, Any]:
+    """The result attributes that say which σ a run reports: ``sigma_method`` (sandwich or
+    gauss-newton), ``dispersion`` (φ of :func:`fricjax.refine.uncertainty_at`, nan for
+    Gauss–Newton) and ``sigma_noise`` (the noise it was propagated from, or why none)."""
+    why = (
+        "white residual assumed: no noise model of the preprocessing "
+        "(settings unknown, or x noise-free)"
+    )
+    return {
+        "sigma_method": unc.method,
+        "dispersion": float(unc.dispersion),
+        "sigma_noise": unc.noise if unc.method != GAUSS_NEWTON else why,
+    }
 
 
 def _no_uncertainty(names: list[str]) -> Uncertainty:

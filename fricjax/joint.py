@@ -67,11 +67,12 @@ from jaxtyping import Array, Float
 from fricjax.config import Config
 from fricjax.data.recording import Recording
 from fricjax.errors import FricjaxError, where
-from fricjax.identify import IdentifySettings, identify, prng_key
+from fricjax.identify import IdentifySettings, identify, prng_key, sigma_attrs
 from fricjax.io.results import RunResult
 from fricjax.limits import check_chains
 from fricjax.problem import Problem
 from fricjax.refine import cluster_minima, refine_many, uncertainty_at, value_and_jacobian
+from fricjax.residual_noise import stacked_noise
 from fricjax.search.chains import LevelInfo, run_chains
 
 JOINT_TABLE = "joint"
@@ -408,7 +409,10 @@ def identify_joint(
         refined = True
     wall = time.perf_counter() - start
     r, jac = value_and_jacobian(residual, best_x, fast_compile=settings.fast_compile)
-    unc = uncertainty_at(r, jac, best_x, jp.lower, jp.upper, names=list(jp.names))
+    noise = stacked_noise(
+        problems, [best_x[np.asarray(i)] for i in jp.index], jac, 1.0 / np.asarray(sigma)
+    )
+    unc = uncertainty_at(r, jac, best_x, jp.lower, jp.upper, names=list(jp.names), noise=noise)
     minima = cluster_minima(chain_x, chain_cost, jp.lower, jp.upper)
     members = []
     offset = 0
@@ -464,6 +468,7 @@ def identify_joint(
             "t0": t0,
             "objective": JOINT_OBJECTIVE,
             "cond": float(unc.cond),
+            **sigma_attrs(unc),
             "separable": settings.separable,
             "search_space": (
                 f"joint ({d}-D over {len(problems)} recordings; "

@@ -79,10 +79,12 @@ def test_every_recording_is_in_the_file_with_its_status(fleet_run) -> None:
     np.testing.assert_array_equal(back.values, fleet.values)  # NaN row for the failure
     np.testing.assert_array_equal(back.stds, fleet.stds)
     assert back.attrs["n_ok"] == 3 and back.attrs["n_failed"] == 1
-    # the fitted mass is the generating one within a few σ
+    # the fitted mass is the generating one within 1.2 %: the equation error's own bias
+    # (the noisy, filtered acceleration is a regressor) is 0.7-1.1 % here, 5-8 honest σ of
+    # the noise's spread (the white-residual σ, 5x larger, used to hide it)
     j = back.names.index("mass")
     ok = np.isfinite(back.values[:, j])
-    assert np.all(np.abs(back.values[ok, j] - AXIS_TRUTH["mass"]) < 5 * back.stds[ok, j])
+    assert np.all(np.abs(back.values[ok, j] - AXIS_TRUTH["mass"]) < 0.012 * AXIS_TRUTH["mass"])
 
 
 def test_report_flags_the_drifted_coulomb_level_only(fleet_run) -> None:

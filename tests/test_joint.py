@@ -27,7 +27,7 @@ from fricjax.joint import (
     split_name,
 )
 from fricjax.problem import build_problem
-from fricjax.report.show import drift_lines, show_results
+from fricjax.report.show import drift_lines, run_summary, show_results
 from fricjax.validate import validate_recording
 
 #: Each twin's own offset [N]; everything else is AXIS_TRUTH, shared.
@@ -175,6 +175,10 @@ def test_show_lists_the_recordings_and_their_weights(fitted) -> None:
         row = next(line for line in text.splitlines() if line.split()[:2] == [str(k), m["name"]])
         assert f"{m['sigma']:.4g}" in row
     assert "EMS [1]" in text  # the joint cost is dimensionless
+    # σ is the sandwich of both recordings' x noise; these twins' residuals are that noise
+    assert run.attrs["sigma_method"] == "sandwich" and "[1] x noise" in run.attrs["sigma_noise"]
+    assert abs(run.attrs["dispersion"] - 1.0) < 0.2
+    assert "sandwich: [0] x noise" in run_summary(run)  # what identify prints
 
 
 @pytest.mark.parametrize(

@@ -189,6 +189,16 @@ def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
     ]
 
 
+def _sigma_rows(a: dict) -> list[tuple[str, str]]:
+    """Which σ the run reports (``fricjax.identify.sigma_attrs``); none for older files."""
+    if "sigma_method" not in a:
+        return []
+    rows = [("σ", f"{a['sigma_method']}: {a.get('sigma_noise', '')}")]
+    if np.isfinite(float(a.get("dispersion", float("nan")))):
+        rows.append(("dispersion (cost / noise-only cost)", f"{float(a['dispersion']):.3g}"))
+    return rows
+
+
 def _cost_unit(run: RunResult) -> str:
     """Unit of a run's cost: the force squared, or 1 for a joint run (Σ_k ‖r_k‖²/s_k²)."""
     return "1" if is_joint(run) else run_units(run).force_sq
@@ -206,6 +216,7 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
                 f"{a.get('n_chains')} x {a.get('levels')} ({a.get('n_evals')} cost evaluations)",
             ),
             *_cost_rows(run),
+            *_sigma_rows(a),
             ("wall time [s]", f"{a.get('wall_time', float('nan')):.2f}"),
             ("interrupted", str(a.get("interrupted", False))),
         ]
