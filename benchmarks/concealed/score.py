@@ -172,6 +172,7 @@ def diagnose_all(
     start_until: float = 0.0,
     log: Callable[[str], None] = print,
     time_limit: float = 0.0,
+    order: str = "long",
 ) -> list[dict[str, Any]]:
     """Every case of the draws' plans (the first ``limit`` of each where > 0) not finished
     in ``results`` (all of them without ``resume``), longest record first; returns the runs
@@ -195,7 +196,15 @@ def diagnose_all(
                 log(f"{draw} {folder.name}: no recording (generate first)")
                 continue
             todo.append((s, draw, folder))
-    todo.sort(key=lambda q: (-q[0].duration, q[0].index, q[1]))
+    if order == "long":  # many workers: the slowest cases must not start last
+        todo.sort(key=lambda q: (-q[0].duration, q[0].index, q[1]))
+    else:  # one worker against a deadline: the most cases, the draws taking turns
+        rank: Counter[tuple[str, float]] = Counter()
+        keyed = []
+        for q in sorted(todo, key=lambda q: (q[0].duration, q[1] != draws[0], q[0].index)):
+            keyed.append(((q[0].duration, rank[(q[1], q[0].duration)]), q))
+            rank[(q[1], q[0].duration)] += 1
+        todo = [q for _, q in sorted(keyed, key=lambda kq: (kq[0], kq[1][1] != draws[0]))]
     log(f"diagnosing {len(todo)} cases with {workers} workers, timeout {timeout:g} s")
     t_start = time.monotonic()
 
@@ -556,6 +565,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=0.0,
         help="start no case (generation or diagnosis) after this many s of the stage",
     )
+    ap.add_argument(
+        "--order",
+        choices=("long", "short"),
+        default="long",
+        help="diagnose the longest records first (many workers) or the shortest first, the "
+        "draws taking turns (one worker against a deadline)",
+    )
     args = ap.parse_args(argv)
     draws = [d.strip() for d in args.draws.split(",") if d.strip()]
     unknown = [d for d in draws if d not in gen.DRAWS]
@@ -572,7 +588,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.stage in ("all", "diagnose"):
         diagnose_all(
             data, results, draws, args.workers, args.timeout, args.resume, args.limit,
-            args.start_until, time_limit=args.time_limit,
+            args.start_until, time_limit=args.time_limit, order=args.order,
         )  # fmt: skip
     if args.stage in ("all", "report"):
         from fricjax.bench.machine import describe
