@@ -48,8 +48,6 @@ DEFAULT_DATA = ROOT / "out" / "concealed"
 DEFAULT_REPORT = ROOT / "benchmarks" / "results" / "concealed" / "report.md"
 DEFAULT_TIMEOUT = 300.0
 STATUSES = ("ok", "timeout", "error")
-# a case counts at its level when its achieved c is at least this fraction of the level
-REACHED = 0.75
 
 
 # -- running ---------------------------------------------------------------------------------
@@ -241,7 +239,7 @@ def outcome(truth: dict[str, Any], run: dict[str, Any] | None, diag: dict | None
         for k in ("case", "family", "effect", "sigma", "duration", "level", "kind", "right_answer")
     }
     row["c"] = truth.get("concealment", 0.0)
-    row["on_level"] = truth["kind"] == "null" or row["c"] >= REACHED * truth["level"]
+    row["on_level"] = truth["kind"] == "null" or gen.counted(row["c"], truth["level"])
     row["pays"] = truth.get("oracle_pays")
     row["oracle_dbic"] = truth.get("oracle_dbic")
     row["status"] = "not run" if run is None else run["status"]
@@ -386,7 +384,7 @@ def report(by: dict[str, list[dict]], out: Path, header: dict[str, str], machine
         "## How to read",
         "",
         "Catalogue cases count where their concealment reached "
-        f"{REACHED:g}× their level (the rest are listed below). *detected*: any finding; "
+        f"{gen.REACHED:g}× their level (the rest are listed below). *detected*: any finding; "
         "*top-1*: the first finding is the hidden effect; *oracle pays*: the true term, "
         "refitted with the base in output error on the noisy record, lowers BIC by more "
         "than the diagnosis' bar (docs/concealed-benchmark.md); *false discoveries*: nulls "
