@@ -102,7 +102,7 @@ LONG_EFFECT_CASES = 2
 # scorer's 5 min timeout), for the estimate printed with the plan.
 DIAGNOSE_MINUTES: dict[float, float] = {0.272: 0.5, 1.0: 1.5, 4.0: 5.0}
 C_RTOL = 0.03
-# a case counts at its level where its achieved c is at least this fraction of it
+# a case counts at its level where its achieved c is within this factor of it, either way
 REACHED = 0.75
 MAX_EVALS = 8
 SHAPE_TRIES = 2
@@ -603,9 +603,10 @@ def oracle(
 
 
 def counted(c: float, level: float) -> bool:
-    """Whether a concealment ``c`` counts at ``level`` (an overshoot makes the effect more
-    visible, not less; an undershoot of more than 1 − :data:`REACHED` does not)."""
-    return c >= REACHED * level
+    """Whether a concealment ``c`` counts at ``level``: within a factor :data:`REACHED` of
+    it either way (where c(a) jumps past the level, the nearest side is taken; a case
+    3× its level says nothing about the level)."""
+    return REACHED * level <= c <= level / REACHED
 
 
 def scale_to(
@@ -747,8 +748,8 @@ def make_case(
             # at which the same signature reaches the level (a better sensor), if any.
             r_max = max((r for r in r_of.values() if r < math.inf), default=0.0)
             lower = [s for s in sorted(SIGMAS, reverse=True) if s < sigma]
-            fit = [s for s in lower if counted(r_max / s, spec.level)]
-            if fit:
+            fit = [s for s in lower if r_max / s >= REACHED * spec.level]
+            if fit and r_max / sigma < REACHED * spec.level:
                 sigma = fit[0]
                 a, c, more, reached = scale_to(spec.level, shape, c_of(shape, sigma), evals_max)
                 evals += more
@@ -768,9 +769,9 @@ def make_case(
             truth.update(sigma=sigma, sigma_planned=spec.sigma)
         if not counted(c, spec.level):
             truth["short_of_level"] = (
-                "below the level at σ_x = 1 µm at the largest physical amplitude"
+                "below the level at the smallest σ_x at the largest physical amplitude"
                 if r_max / min(SIGMAS) < REACHED * spec.level
-                else "the amplitude search did not land on the level"
+                else "c(a) jumps past the level (the amplitude search did not land on it)"
             )
     noise = spec.rng(seed, "noise").normal(0.0, sigma, setup.t.size)
     if spec.effect in CATALOGUE_EFFECTS:
