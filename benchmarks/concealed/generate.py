@@ -848,7 +848,7 @@ def _one(args: tuple[str, str, int, float]) -> str:
     write_case(path, spec, signals, truth)
     c = truth.get("concealment", 0.0)
     return (
-        f"{path.name} draw {draw} {spec.family} {spec.effect} σ={spec.sigma * 1e6:g}µm "
+        f"{path.name} draw {draw} {spec.family} {spec.effect} σ={truth['sigma'] * 1e6:g}µm "
         f"T={spec.duration:g}s c={c:.2f}/{spec.level:g} ({truth['generate_s']:.0f} s)"
     )
 
