@@ -532,7 +532,7 @@ def make_plots(by: dict[str, list[dict]], out: Path) -> list[Path]:
         ax.set_yticks(range(len(truths)), truths, fontsize=8)
         ax.set_title(f"draw {draw}: hidden effect × first finding")
         fig.tight_layout()
-        paths.append(save(fig, out.with_name(f"{out.stem}_confusion_{draw}.png")))
+        paths.append(save(fig, out.with_name(f"{out.stem}_confusion_{draw.replace(' ', '_')}.png")))
     return paths
 
 
