@@ -411,6 +411,7 @@ def test_cross_validation_takes_as_many_folds_as_a_refit_of_every_parameter_need
     assert cv_folds(43, 0) == CV_FOLDS
 
 
+@pytest.mark.slow  # 20-30 s: two diagnoses' refits of a short record
 def test_without_a_second_recording_a_short_record_is_judged_by_a_cross_validation_that_refits(
     short_problems: dict, short_checks: dict
 ) -> None:
@@ -436,6 +437,7 @@ def test_without_a_second_recording_a_short_record_is_judged_by_a_cross_validati
     assert gains[True] > 0.5 and gains[False] < 0.0
 
 
+@pytest.mark.slow  # 20-30 s: two diagnoses' refits of a short record
 def test_a_short_record_s_significant_excess_has_every_candidate_refitted_first(
     short_problems: dict,
 ) -> None:
