@@ -43,6 +43,7 @@ from fricjax.api import diagnose_recording
 from fricjax.config import Config, load_config
 from fricjax.data.importers import import_mat
 from fricjax.data.recording import Recording, read_recording, write_recording
+from fricjax.diagnose.stages import LIMITED
 from fricjax.io.atomic import write_text_atomic
 from fricjax.problem import build_problem
 from fricjax.refine import RefineSettings, refine
@@ -118,6 +119,11 @@ def main() -> int:
                 E.CONFIG,
                 out=DIAG_DIR,
                 validation=paths["validation"].name,
+                # findings compared across versions must not depend on the machine's speed
+                overrides={
+                    "time_limit": float("inf"),
+                    "stage_limits": dict.fromkeys(LIMITED, float("inf")),
+                },
             )
         t_diag = time.perf_counter() - t0
 
