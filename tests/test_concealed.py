@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -126,6 +127,55 @@ def test_a_generated_effect_is_concealed_to_its_level(harmonic_case: tuple) -> N
     assert truth["oracle_pays"] and truth["oracle_lr"] > 0.0
 
 
+def test_an_amplitude_that_freezes_the_body_bounds_the_search_from_above() -> None:
+    """c(a) = 40·a² until the effect stops the body (a ≥ 0.7: nothing moves, c = 0): the
+    search for c = 12 brackets below the frozen amplitude and lands on a = √0.3 within
+    C_RTOL, where reading c = 0 as "too weak" would stop at the bound."""
+    shape = gen.Shape("drive_saturation", lambda a: {"sat_fraction": a}, 0.01, 0.8)
+    a, c, evals, reached = gen.scale_to(12.0, shape, lambda a: 40.0 * a**2 if a < 0.7 else 0.0)
+    assert reached and abs(c / 12.0 - 1.0) < gen.C_RTOL
+    assert a == pytest.approx(0.3**0.5, rel=gen.C_RTOL) and evals <= gen.MAX_EVALS
+
+
+def test_a_case_counts_within_its_factor_of_the_level_either_way() -> None:
+    level = 7.0
+    assert gen.counted(level, level)
+    assert gen.counted(gen.REACHED * level, level) and gen.counted(level / gen.REACHED, level)
+    assert not gen.counted(0.7 * level, level) and not gen.counted(1.4 * level, level)
+
+
+@pytest.fixture(scope="module")
+def lowered_case() -> tuple[gen.CaseSpec, dict, dict]:
+    """Draw A's mass error on a 0.272 s force-axis record, planned at σ_x = 100 µm, level 7."""
+    spec = gen.CaseSpec("force", "mass_error", 100e-6, 0.272, 7.0, 31)
+    signals, truth = gen.make_case(spec, gen.DRAWS["A"], bar=10.0)
+    return spec, signals, truth
+
+
+def test_an_effect_too_small_for_its_noise_takes_the_largest_sigma_that_shows_it(
+    lowered_case: tuple,
+) -> None:
+    """Even at its largest amplitude (30 %) the mass error leaves less than 0.75 × 7 σ_x
+    at the planned 100 µm, re-measured from the truth; the case takes the largest σ_x of
+    SIGMAS at which it reaches its level, says so in its truth, is at that level there,
+    and its recorded noise has that std."""
+    spec, signals, truth = lowered_case
+    setup, _ = gen.setup_of(spec, gen.DRAWS["A"])
+    fitter = gen.Fitter(setup)
+    shape_max = {**truth["params"], "mass_eps": math.copysign(0.3, truth["params"]["mass_eps"])}
+    x_max, _ = gen.recorded(setup, plant.Effect("mass_error", shape_max))
+    r_max = gen.concealment(fitter, x_max, 1.0)
+    assert r_max / spec.sigma < gen.REACHED * spec.level
+    assert truth["sigma_planned"] == spec.sigma
+    larger = [s for s in gen.SIGMAS if truth["sigma"] < s]
+    assert truth["sigma"] in gen.SIGMAS and truth["sigma"] < spec.sigma
+    assert r_max / truth["sigma"] >= gen.REACHED * spec.level
+    assert all(r_max / s < gen.REACHED * spec.level for s in larger)
+    x_e, _ = gen.recorded(setup, plant.Effect("mass_error", truth["params"]))
+    assert gen.counted(gen.concealment(fitter, x_e, truth["sigma"]), spec.level)
+    assert np.std(signals["x"] - x_e) == pytest.approx(truth["sigma"], rel=0.15)
+
+
 def test_the_benchmark_knows_every_catalogue_effect() -> None:
     from fricjax.diagnose.catalogue import CATALOGUE
 
@@ -241,17 +291,28 @@ def test_the_report_reads_diagnosis_files_and_truths_only_from_their_folders(
         spec = gen.CaseSpec("force", effect, 5e-6, 0.05, 0.0 if kind == "null" else 7.0, i)
         truth = {**_truth(case, effect, kind, pays=True), **spec._asdict(), "case": case}
         signals = {"t": t, "x": np.zeros_like(t), "u": np.zeros_like(t), "mass": 10.0}
-        gen.write_case(tmp_path / "drawA" / f"{case}.h5", spec, signals, truth)
+        path = gen.write_case(tmp_path / "drawA" / f"{case}.h5", spec, signals, truth)
+        sha = score.recording_sha256(path)
         rows.append({"case": case, "recording": f"{case}.h5"})
         if names is not None:
-            folder = tmp_path / "results" / "drawA" / case
-            folder.mkdir(parents=True)
-            (folder / "diagnosis.json").write_text(json.dumps(_diag(*names)))
-            (folder / "run.json").write_text(json.dumps(_run(wall=10.0 * (i + 1))))
+            for label, found in (("old", names), ("new", [effect] if kind != "null" else [])):
+                folder = tmp_path / "results" / label / "drawA" / case
+                folder.mkdir(parents=True)
+                (folder / "diagnosis.json").write_text(json.dumps(_diag(*found)))
+                run = {**_run(wall=10.0 * (i + 1)), "recording_sha256": sha}
+                (folder / "run.json").write_text(json.dumps(run))
     (tmp_path / "drawA" / "plan.json").write_text(json.dumps({"cases": rows}))
-    by = score.load_rows(tmp_path, tmp_path / "results", ["A"])
-    t = score.tally(by["A"])
+    by = score.load_rows(tmp_path, tmp_path / "results", ["A"], ["old", "new"])
+    assert list(by) == ["A old", "A new"]
+    t = score.tally(by["A old"])
     assert (t["cat"], t["top1"], t["null"], t["false"]) == (1, 1, 1, 1)
     assert (t["outside"], t["wrong"], t["not_run"], t["median_s"]) == (1, 1, 1, 20.0)
+    t = score.tally(by["A new"])  # named every hidden effect: the outside one is still wrong
+    assert (t["top1"], t["false"], t["wrong"]) == (1, 0, 1)
     text = "\n".join(score.group_table(by, "family", lambda r: r["family"]))
-    assert "| force | A | 1/1 | 1/1 | 1/1 | 1/1 | 1/1 | 0/1 | 1/1 | 0 | 0 | 20 |" in text
+    assert "| force | A old | 1/1 | 1/1 | 1/1 | 1/1 | 1/1 | 0/1 | 1/1 | 0 | 0 | 20 |" in text
+    # a run made on other bits than the recording's no longer counts
+    stale = tmp_path / "results" / "new" / "drawA" / "k1" / "run.json"
+    stale.write_text(json.dumps({**_run(), "recording_sha256": "0" * 64}))
+    again = score.load_rows(tmp_path, tmp_path / "results", ["A"], ["new"])["A new"]
+    assert [r["status"] for r in again] == ["not run", "ok", "ok", "not run"]

@@ -102,6 +102,8 @@ LONG_EFFECT_CASES = 2
 # scorer's 5 min timeout), for the estimate printed with the plan.
 DIAGNOSE_MINUTES: dict[float, float] = {0.272: 0.5, 1.0: 1.5, 4.0: 5.0}
 C_RTOL = 0.03
+# a case counts at its level where its achieved c is within this factor of it, either way
+REACHED = 0.75
 MAX_EVALS = 8
 SHAPE_TRIES = 2
 LM_ITERS = 36
@@ -600,14 +602,25 @@ def oracle(
     return {"oracle_lr": lr, "oracle_dbic": dbic, "oracle_k": len(free), "oracle_pays": dbic > bar}
 
 
+def counted(c: float, level: float) -> bool:
+    """Whether a concealment ``c`` counts at ``level``: within a factor :data:`REACHED` of
+    it either way (where c(a) jumps past the level, the nearest side is taken; a case
+    3× its level says nothing about the level)."""
+    return REACHED * level <= c <= level / REACHED
+
+
 def scale_to(
     target: float, shape: Shape, c_of: Callable[[float], float], max_evals: int = MAX_EVALS
 ) -> tuple[float, float, int, bool]:
     """The amplitude at which ``c_of`` hits ``target`` within C_RTOL: log-secant from
     ``shape.a0`` (c is close to a power of a), kept in (0, a_max]; once the target is
     bracketed, inside the bracket (a geometric bisection where the secant leaves it, as c(a)
-    can jump where the effect changes the stick/slip sequence). Returns (a, c, evaluations,
-    reached); not reached: the evaluation nearest the target."""
+    can jump where the effect changes the stick/slip sequence). An amplitude where the
+    plant chatters (c = ∞) or that stops the body for the whole record (c = 0 above an
+    amplitude with c > 0: nothing moves, so nothing is left to conceal) is too strong and
+    bounds the bracket from above. Returns (a, c, evaluations, reached); not reached: the
+    evaluation nearest the target among those that count (:func:`counted`), else the
+    nearest."""
     pts: list[tuple[float, float]] = []
     a = shape.a0
     for k in range(max_evals):
@@ -615,8 +628,12 @@ def scale_to(
         pts.append((a, c))
         if abs(c / target - 1.0) < C_RTOL:
             return a, c, k + 1, True
-        below = [q for q in pts if q[1] < target]
-        above = [q for q in pts if q[1] > target]
+        below = [q for q in pts if 0 < q[1] < target]
+        above = [
+            q
+            for q in pts
+            if q[1] > target or (q[1] <= 0 and any(0 < r[1] and r[0] < q[0] for r in pts))
+        ]
         lo = max(below, default=None)
         hi = min(above, default=None)
         good = sorted(
@@ -635,7 +652,8 @@ def scale_to(
         if a_next == a:
             break
         a = a_next
-    a, c = min(pts, key=lambda q: abs(math.log(max(q[1], 1e-300) / target)))
+    ok = [q for q in pts if counted(q[1], target) and q[1] < math.inf] or pts
+    a, c = min(ok, key=lambda q: abs(math.log(max(q[1], 1e-300) / target)))
     return a, c, len(pts), False
 
 
@@ -691,33 +709,50 @@ def make_case(
         "stuck_fraction_base": float(np.mean(stuck)),
         "config": str(CONFIGS[spec.family].relative_to(ROOT)),
     }
-    noise = spec.rng(seed, "noise").normal(0.0, spec.sigma, setup.t.size)
+    sigma = spec.sigma
     if spec.effect == NULL:
         x_clean, u = recorded(setup, Effect("none", {}))
         truth.update(params={}, concealment=0.0, reached=True)
     else:
         long = spec.duration > LONG_RECORD
         fitter = Fitter(setup, LM_ITERS_LONG if long else LM_ITERS)
+        # rms(x_e − x_b(θ̂)) [m] of the current shape per amplitude: noise-free, so the
+        # concealment at any σ_x is r/σ_x without simulating again
+        r_of: dict[float, float] = {}
 
-        def c_of(shape: Shape) -> Callable[[float], float]:
+        def c_of(shape: Shape, sig: float) -> Callable[[float], float]:
             def c(a: float) -> float:
-                try:
-                    x_e = recorded(setup, Effect(spec.effect, shape.params(a)))[0]
-                except RuntimeError:  # the plant chatters: treat as too strong
-                    return math.inf
-                return concealment(fitter, x_e, spec.sigma)
+                if a not in r_of:
+                    try:
+                        x_e = recorded(setup, Effect(spec.effect, shape.params(a)))[0]
+                        r_of[a] = concealment(fitter, x_e, 1.0)
+                    except RuntimeError:  # the plant chatters: treat as too strong
+                        r_of[a] = math.inf
+                return r_of[a] / sig
 
             return c
 
+        evals_max = MAX_EVALS_LONG if long else MAX_EVALS
         # where the base absorbs the effect's first shape, the shape is drawn again
         for tries in range(1, (SHAPE_TRIES if spec.effect in SHAPED and not long else 1) + 1):
             shape = draw_shape(spec.effect, rng, setup.p, x_base, v_base, spec.duration)
-            a, c, evals, reached = scale_to(
-                spec.level, shape, c_of(shape), MAX_EVALS_LONG if long else MAX_EVALS
-            )
+            r_of.clear()
+            a, c, evals, reached = scale_to(spec.level, shape, c_of(shape, sigma), evals_max)
             truth["shape_tries"] = tries
             if reached:
                 break
+        if not counted(c, spec.level):
+            # Even at its largest physical amplitude the effect leaves less than the level
+            # above this noise: no record with this sensor shows it at that level. The case
+            # keeps its effect, record and level and takes the largest lower σ_x of SIGMAS
+            # at which the same signature reaches the level (a better sensor), if any.
+            r_max = max((r for r in r_of.values() if r < math.inf), default=0.0)
+            lower = [s for s in sorted(SIGMAS, reverse=True) if s < sigma]
+            fit = [s for s in lower if r_max / s >= REACHED * spec.level]
+            if fit and r_max / sigma < REACHED * spec.level:
+                sigma = fit[0]
+                a, c, more, reached = scale_to(spec.level, shape, c_of(shape, sigma), evals_max)
+                evals += more
         truth["refit_iters"] = fitter.iters
         effect = Effect(spec.effect, shape.params(a))
         x_clean, u = recorded(setup, effect)
@@ -728,18 +763,27 @@ def make_case(
             concealment=c,
             reached=reached,
             secant_evals=evals,
-            raw_rms_over_sigma=rms(x_clean - fitter.x0) / spec.sigma,
+            raw_rms_over_sigma=rms(x_clean - fitter.x0) / sigma,
         )
-        if spec.effect in CATALOGUE_EFFECTS:
-            truth.update(
-                oracle(
-                    fitter,
-                    x_clean + noise,
-                    effect,
-                    spec.sigma,
-                    diagnose_bar() if bar is None else bar,
-                )
+        if sigma != spec.sigma:
+            truth.update(sigma=sigma, sigma_planned=spec.sigma)
+        if not counted(c, spec.level):
+            truth["short_of_level"] = (
+                "below the level at the smallest σ_x at the largest physical amplitude"
+                if r_max / min(SIGMAS) < REACHED * spec.level
+                else "c(a) jumps past the level (the amplitude search did not land on it)"
             )
+    noise = spec.rng(seed, "noise").normal(0.0, sigma, setup.t.size)
+    if spec.effect in CATALOGUE_EFFECTS:
+        truth.update(
+            oracle(
+                fitter,
+                x_clean + noise,
+                effect,
+                sigma,
+                diagnose_bar() if bar is None else bar,
+            )
+        )
     x = x_clean + noise
     truth["generate_s"] = time.perf_counter() - t_start
     signals = {"t": setup.t, "x": x, "u": u, "mass": setup.mass}
@@ -804,7 +848,7 @@ def _one(args: tuple[str, str, int, float]) -> str:
     write_case(path, spec, signals, truth)
     c = truth.get("concealment", 0.0)
     return (
-        f"{path.name} draw {draw} {spec.family} {spec.effect} σ={spec.sigma * 1e6:g}µm "
+        f"{path.name} draw {draw} {spec.family} {spec.effect} σ={truth['sigma'] * 1e6:g}µm "
         f"T={spec.duration:g}s c={c:.2f}/{spec.level:g} ({truth['generate_s']:.0f} s)"
     )
 

@@ -48,8 +48,6 @@ DEFAULT_DATA = ROOT / "out" / "concealed"
 DEFAULT_REPORT = ROOT / "benchmarks" / "results" / "concealed" / "report.md"
 DEFAULT_TIMEOUT = 300.0
 STATUSES = ("ok", "timeout", "error")
-# a case counts at its level when its achieved c is at least this fraction of the level
-REACHED = 0.75
 
 
 # -- running ---------------------------------------------------------------------------------
@@ -95,8 +93,20 @@ def case_dir(results: Path, draw: str, case: str) -> Path:
     return results / f"draw{draw}" / case
 
 
-def finished(folder: Path) -> bool:
-    return (folder / "run.json").is_file()
+def finished(folder: Path, sha256: str | None = None) -> bool:
+    """Whether the case's diagnosis is finished (its ``run.json`` written) — on the
+    recording whose checksum is ``sha256`` where given: a run of other bits is stale."""
+    run = folder / "run.json"
+    if not run.is_file():
+        return False
+    return sha256 is None or json.loads(run.read_text()).get("recording_sha256") == sha256
+
+
+def recording_sha256(path: Path) -> str:
+    """The recording's checksum (its numbers, not the file's bytes: the truth is left out)."""
+    from fricjax.data.recording import read_recording
+
+    return read_recording(path).sha256()
 
 
 def run_case(
@@ -154,6 +164,7 @@ def run_case(
         "stdout_tail": out[-2000:],
         "stderr_tail": err[-2000:],
         "load_average_at_start": load,
+        "recording_sha256": recording_sha256(recording),
         "finished_at": time.strftime("%Y-%m-%d %H:%M:%S"),
         **context,
     }
@@ -172,6 +183,7 @@ def diagnose_all(
     start_until: float = 0.0,
     log: Callable[[str], None] = print,
     time_limit: float = 0.0,
+    order: str = "long",
 ) -> list[dict[str, Any]]:
     """Every case of the draws' plans (the first ``limit`` of each where > 0) not finished
     in ``results`` (all of them without ``resume``), longest record first; returns the runs
@@ -181,21 +193,36 @@ def diagnose_all(
     time_limit = time_limit if time_limit > 0 else max(timeout - REPORT_MARGIN, 1.0)
     import jax
 
+    from fricjax.bench.machine import describe
+
     state = git_state()
     configs = {f: settings_of(c) for f, c in gen.CONFIGS.items()}
+    host = describe()
+    machine = f"{host.cpu}, {host.cores} cores, {host.ram_gib:.0f} GiB"
     todo = []
     for draw in draws:
         specs = gen.plan(gen.DRAWS[draw])
         specs = specs[:limit] if limit > 0 else specs
         for s in specs:
             folder = case_dir(results, draw, s.case_id(gen.DRAWS[draw]))
-            if resume and finished(folder):
-                continue
-            if not gen.case_path(data, draw, s).is_file():
+            rec = gen.case_path(data, draw, s)
+            if not rec.is_file():
                 log(f"{draw} {folder.name}: no recording (generate first)")
                 continue
+            if resume and finished(folder, recording_sha256(rec)):
+                continue
+            if finished(folder):
+                log(f"{draw} {folder.name}: its run was made on other bits; run again")
             todo.append((s, draw, folder))
-    todo.sort(key=lambda q: (-q[0].duration, q[0].index, q[1]))
+    if order == "long":  # many workers: the slowest cases must not start last
+        todo.sort(key=lambda q: (-q[0].duration, q[0].index, q[1]))
+    else:  # one worker against a deadline: the most cases, the draws taking turns
+        rank: Counter[tuple[str, float]] = Counter()
+        keyed = []
+        for q in sorted(todo, key=lambda q: (q[0].duration, q[1] != draws[0], q[0].index)):
+            keyed.append(((q[0].duration, rank[(q[1], q[0].duration)]), q))
+            rank[(q[1], q[0].duration)] += 1
+        todo = [q for _, q in sorted(keyed, key=lambda kq: (kq[0], kq[1][1] != draws[0]))]
     log(f"diagnosing {len(todo)} cases with {workers} workers, timeout {timeout:g} s")
     t_start = time.monotonic()
 
@@ -209,6 +236,8 @@ def diagnose_all(
             "jax": jax.__version__,
             "python": sys.version.split()[0],
             "workers": workers,
+            "machine": machine,
+            "nice": os.nice(0),
             "jax_platforms": os.environ.get("JAX_PLATFORMS", ""),
             "xla_flags": os.environ.get("XLA_FLAGS", ""),
             "diagnose_time_limit_s": time_limit,
@@ -226,13 +255,16 @@ def diagnose_all(
 # -- scoring ---------------------------------------------------------------------------------
 def outcome(truth: dict[str, Any], run: dict[str, Any] | None, diag: dict | None) -> dict:
     """One case scored: its status and, where it ran, what was found against the right
-    answer (``first``: the first finding's effect, ``none`` for no finding)."""
+    answer (``first``: the first finding's effect, ``none`` for no finding). ``sigma`` is
+    the σ_x the record has (``sigma_planned`` the plan's, where the generator lowered it)."""
     row = {
         k: truth[k]
         for k in ("case", "family", "effect", "sigma", "duration", "level", "kind", "right_answer")
     }
+    row["sigma_planned"] = truth.get("sigma_planned", truth["sigma"])
+    row["run"] = run
     row["c"] = truth.get("concealment", 0.0)
-    row["on_level"] = truth["kind"] == "null" or row["c"] >= REACHED * truth["level"]
+    row["on_level"] = truth["kind"] == "null" or gen.counted(row["c"], truth["level"])
     row["pays"] = truth.get("oracle_pays")
     row["oracle_dbic"] = truth.get("oracle_dbic")
     row["status"] = "not run" if run is None else run["status"]
@@ -256,24 +288,33 @@ def outcome(truth: dict[str, Any], run: dict[str, Any] | None, diag: dict | None
     return row
 
 
-def load_rows(data: Path, results: Path, draws: Sequence[str]) -> dict[str, list[dict]]:
-    """Per draw, every planned case that has a recording, scored (:func:`outcome`)."""
+def load_rows(
+    data: Path, results: Path, draws: Sequence[str], labels: Sequence[str] = ()
+) -> dict[str, list[dict]]:
+    """Per draw, every planned case that has a recording, scored (:func:`outcome`) against
+    the diagnoses in ``results/draw<X>``; with ``labels``, against each labelled set
+    ``results/LABEL/draw<X>`` in turn, keyed ``"<X> LABEL"`` (the labels of a draw side by
+    side). A run made on other bits than the recording's is not counted (stale)."""
     out: dict[str, list[dict]] = {}
     for draw in draws:
         plan_file = data / f"draw{draw}" / "plan.json"
         if not plan_file.is_file():
             continue
-        rows = []
-        for case in json.loads(plan_file.read_text())["cases"]:
-            rec = data / f"draw{draw}" / case["recording"]
-            if not rec.is_file():
-                continue
-            folder = case_dir(results, draw, case["case"])
-            run = json.loads((folder / "run.json").read_text()) if finished(folder) else None
-            diag_path = folder / "diagnosis.json"
-            diag = json.loads(diag_path.read_text()) if run and diag_path.is_file() else None
-            rows.append(outcome(gen.read_truth(rec), run, diag))
-        out[draw] = rows
+        cases = [
+            (c["case"], gen.read_truth(data / f"draw{draw}" / c["recording"]))
+            for c in json.loads(plan_file.read_text())["cases"]
+            if (data / f"draw{draw}" / c["recording"]).is_file()
+        ]
+        for label in labels or [""]:
+            rows = []
+            for case, truth in cases:
+                folder = case_dir(results / label if label else results, draw, case)
+                done = finished(folder, truth.get("recording_sha256"))
+                run = json.loads((folder / "run.json").read_text()) if done else None
+                diag_path = folder / "diagnosis.json"
+                diag = json.loads(diag_path.read_text()) if run and diag_path.is_file() else None
+                rows.append({**outcome(truth, run, diag), "draw": draw, "label": label})
+            out[f"{draw} {label}" if label else draw] = rows
     return out
 
 
@@ -331,7 +372,7 @@ HEAD = [
     "false discoveries (nulls)",
     "outside → unexplained",
     "outside → wrong name",
-    "not reached (left out)",
+    "off level (left out)",
     "timeouts",
     "median s/case",
 ]
@@ -370,20 +411,25 @@ def report(by: dict[str, list[dict]], out: Path, header: dict[str, str], machine
     """Markdown report (and PNGs beside it); returns the text."""
     from fricjax.io.atomic import write_text_atomic
 
-    lines = ["# Concealed benchmark: baseline of `fricjax diagnose`", ""]
+    labels = list(dict.fromkeys(r["label"] for rows in by.values() for r in rows if r["label"]))
+    title = " beside ".join(f"`{lb}`" for lb in labels) if labels else "`fricjax diagnose`"
+    lines = [f"# Concealed benchmark: {title}", ""]
     lines += [f"- **{k}**: {v}" for k, v in header.items()]
     lines += ["", "## Machine (report assembled on)", "", machine_md, ""]
     lines += [
         "## How to read",
         "",
-        "Catalogue cases count where their concealment reached "
-        f"{REACHED:g}× their level (the rest are listed below). *detected*: any finding; "
+        "Effect cases count where their concealment is within a factor "
+        f"{gen.REACHED:g} of their level either way (the others are *off level*, listed "
+        "below; σ_x is the record's, lowered by the generator where no record at the "
+        "planned noise shows the effect at its level: see *Reach*). *detected*: any finding; "
         "*top-1*: the first finding is the hidden effect; *oracle pays*: the true term, "
         "refitted with the base in output error on the noisy record, lowers BIC by more "
         "than the diagnosis' bar (docs/concealed-benchmark.md); *false discoveries*: nulls "
         "with any finding; outside-catalogue effects should end `unexplained` (*wrong name*: "
         "any catalogue name among the findings). Draw A may be looked at when choosing a "
-        "threshold, draw B never.",
+        "threshold, draw B never. With several labels (diagnosis versions), each draw has "
+        "a row per label.",
         "",
     ]
     lines += group_table(by, "noise σ_x [µm]", lambda r: f"{r['sigma'] * 1e6:g}")
@@ -401,6 +447,7 @@ def report(by: dict[str, list[dict]], out: Path, header: dict[str, str], machine
             for t, row in zip(truths, mat, strict=True)
         ]
         lines.append("")
+    lines += reach_table(by)
     lines += ["## Every case", ""]
     lines += [
         "| draw | case | family | effect | σ_x µm | T s | level | c | oracle ΔBIC | status "
@@ -410,10 +457,15 @@ def report(by: dict[str, list[dict]], out: Path, header: dict[str, str], machine
     for draw, rows in by.items():
         for r in rows:
             dbic, wall = r["oracle_dbic"], r["wall_s"]
+            planned = (
+                ""
+                if r["sigma"] == r["sigma_planned"]
+                else f" (planned {r['sigma_planned'] * 1e6:g})"
+            )
             lines.append(
                 f"| {draw} | {r['case']} | {r['family']} | {r['effect']} | "
-                f"{r['sigma'] * 1e6:g} | {r['duration']:g} | {r['level']:g} | {r['c']:.2f}"
-                f"{'' if r['on_level'] else ' (not reached)'} | "
+                f"{r['sigma'] * 1e6:g}{planned} | {r['duration']:g} | {r['level']:g} | {r['c']:.2f}"
+                f"{'' if r['on_level'] else ' (off level)'} | "
                 f"{'–' if dbic is None else f'{dbic:.3g}'} | {r['status']} | "
                 f"{'–' if wall is None else f'{wall:.0f}'} | "
                 f"{', '.join(r['names']) or '–'} |"
@@ -484,48 +536,103 @@ def make_plots(by: dict[str, list[dict]], out: Path) -> list[Path]:
     return paths
 
 
-def header_of(by: dict[str, list[dict]], results: Path) -> dict[str, str]:
-    """What made the diagnoses: commits, settings, workers, jax, timeouts (tallied over the
-    cases' run.json)."""
-    runs = []
-    for draw, rows in by.items():
+def header_of(by: dict[str, list[dict]]) -> dict[str, str]:
+    """What made the diagnoses, per label: commits, configs, settings, machine, workers,
+    nice, jax, timeouts and load (tallied over the cases' run.json)."""
+    out: dict[str, str] = {}
+    labels = list(dict.fromkeys(r["label"] for rows in by.values() for r in rows))
+    n_cases: dict[str, int] = {}
+    for rows in by.values():
         for r in rows:
-            f = case_dir(results, draw, r["case"]) / "run.json"
-            if f.is_file():
-                runs.append(json.loads(f.read_text()))
+            n_cases[r["draw"]] = n_cases.get(r["draw"], 0) + (r["label"] == labels[0])
+    out["cases"] = ", ".join(f"draw {d}: {n} (seed {gen.DRAWS[d]})" for d, n in n_cases.items())
+    for label in labels:
+        runs = [r["run"] for rows in by.values() for r in rows if r["label"] == label and r["run"]]
 
-    def tallied(key: Callable[[dict], Any]) -> str:
-        return ", ".join(f"{k}: {n}" for k, n in Counter(key(r) for r in runs).most_common())
+        def tallied(key: Callable[[dict], Any], runs: list[dict] = runs) -> str:
+            n = Counter(key(r) for r in runs).most_common()
+            return ", ".join(f"{k}: {c}" for k, c in n) or "–"
 
-    n_cases = {d: len(rows) for d, rows in by.items()}
-    return {
-        "cases": ", ".join(f"draw {d}: {n} (seed {gen.DRAWS[d]})" for d, n in n_cases.items()),
-        "diagnosed": f"{len(runs)} of {sum(n_cases.values())}",
-        "git commit (modified files) of the diagnoses": tallied(
-            lambda r: f"{r['git']['commit']} ({len(r['git']['modified'])} modified)"
-        ),
-        "configs (sha256) of the diagnoses": tallied(
-            lambda r: f"{r['config']} ({r['config_sha256'][:12]})"
-        ),
-        "diagnose settings": tallied(
-            lambda r: ", ".join(f"{k}={v}" for k, v in sorted(r["diagnose_settings"].items()))
-        ),
-        "jax, python, workers, timeout": tallied(
-            lambda r: (
-                f"jax {r['jax']}, Python {r['python']}, {r['workers']} workers, "
-                f"{r['timeout_s']:g} s"
-            )
-        ),
-        "load average (1 min) when cases started": (
-            "–"
-            if not runs
-            else "median {:.1f}, max {:.1f}".format(
-                sorted(r["load_average_at_start"][0] for r in runs)[len(runs) // 2],
-                max(r["load_average_at_start"][0] for r in runs),
-            )
-        ),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-    }
+        loads = sorted(r["load_average_at_start"][0] for r in runs)
+        pre = f"[{label}] " if label else ""
+        out |= {
+            f"{pre}diagnosed": f"{len(runs)} of {sum(n_cases.values())}",
+            f"{pre}git commit (modified files)": tallied(
+                lambda r: f"{r['git']['commit']} ({len(r['git']['modified'])} modified)"
+            ),
+            f"{pre}configs (sha256)": tallied(
+                lambda r: f"{r['config']} ({r['config_sha256'][:12]})"
+            ),
+            f"{pre}diagnose settings": tallied(
+                lambda r: ", ".join(f"{k}={v}" for k, v in sorted(r["diagnose_settings"].items()))
+            ),
+            f"{pre}machine, jax, python, workers, nice, timeout, time limit": tallied(
+                lambda r: (
+                    f"{r.get('machine', 'machine not recorded')}, jax {r['jax']}, "
+                    f"Python {r['python']}, {r['workers']} workers, nice {r.get('nice', '?')}, "
+                    f"{r['timeout_s']:g} s, limit {r.get('diagnose_time_limit_s', '?')} s"
+                )
+            ),
+            f"{pre}load average (1 min) when cases started": (
+                "–" if not runs else f"median {loads[len(loads) // 2]:.1f}, max {loads[-1]:.1f}"
+            ),
+            f"{pre}finished": (
+                "–"
+                if not runs
+                else " to ".join(
+                    (min(r["finished_at"] for r in runs), max(r["finished_at"] for r in runs))
+                )
+            ),
+        }
+    return out
+
+
+def reach_table(by: dict[str, list[dict]]) -> list[str]:
+    """Whether the generator put each effect case at its level, per family × effect, with
+    its length and σ_x (planned → used where lowered) and c/level, one column per draw."""
+    first = {}
+    for rows in by.values():
+        for r in rows:
+            if r["kind"] != "null":
+                first.setdefault(r["draw"], {}).setdefault((r["family"], r["effect"]), r)
+    draws = list(first)
+    lines = [
+        "## Reach: each effect case at its level?",
+        "",
+        "Per case: length, σ_x [µm] (planned → used where no record at the planned noise "
+        "shows the effect at its level), c / level; ✗: short of the level (left out of "
+        "the rates).",
+        "",
+        "| family | effect | " + " | ".join(f"draw {d}" for d in draws) + " |",
+        "|" + "---|" * (2 + len(draws)),
+    ]
+
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "–"
+        sig = f"{r['sigma'] * 1e6:g}"
+        if r["sigma_planned"] != r["sigma"]:
+            sig = f"{r['sigma_planned'] * 1e6:g} → {sig}"
+        mark = "" if r["on_level"] else " ✗"
+        return f"{r['duration']:g} s, {sig} µm, {r['c']:.2f}/{r['level']:g}{mark}"
+
+    keys = sorted({k for d in draws for k in first[d]})
+    for fam, eff in keys:
+        cells = [cell(first[d].get((fam, eff))) for d in draws]
+        lines.append(f"| {fam} | {eff} | " + " | ".join(cells) + " |")
+    lines += ["", "| family | length [s] | " + " | ".join(f"at level, draw {d}" for d in draws)
+              + " | " + " | ".join(f"σ_x lowered, draw {d}" for d in draws) + " |"]  # fmt: skip
+    lines.append("|" + "---|" * (2 + 2 * len(draws)))
+    for fam in gen.FAMILIES:
+        for T in gen.LENGTHS:
+            sel = {d: [r for r in first[d].values() if r["family"] == fam and r["duration"] == T]
+                   for d in draws}  # fmt: skip
+            if not any(sel.values()):
+                continue
+            on = [f"{sum(r['on_level'] for r in sel[d])}/{len(sel[d])}" for d in draws]
+            low = [f"{sum(r['sigma_planned'] != r['sigma'] for r in sel[d])}" for d in draws]
+            lines.append(f"| {fam} | {T:g} | " + " | ".join(on + low) + " |")
+    return [*lines, ""]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -533,6 +640,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--stage", choices=("all", "generate", "diagnose", "report"), default="all")
     ap.add_argument("--data", default=str(DEFAULT_DATA), help="cases (generate.py writes)")
     ap.add_argument("--results", default="", help="diagnoses (default DATA/results)")
+    ap.add_argument(
+        "--label",
+        default="baseline",
+        help="the diagnosis version: its runs go to RESULTS/LABEL; the report takes a "
+        "comma list (e.g. baseline,redesign) and shows them side by side",
+    )
     ap.add_argument("--report", default=str(DEFAULT_REPORT), help="Markdown (PNGs beside)")
     ap.add_argument("--draws", default="A,B")
     ap.add_argument("--workers", type=int, default=2, help="cases at a time")
@@ -556,6 +669,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=0.0,
         help="start no case (generation or diagnosis) after this many s of the stage",
     )
+    ap.add_argument(
+        "--order",
+        choices=("long", "short"),
+        default="long",
+        help="diagnose the longest records first (many workers) or the shortest first, the "
+        "draws taking turns (one worker against a deadline)",
+    )
     args = ap.parse_args(argv)
     draws = [d.strip() for d in args.draws.split(",") if d.strip()]
     unknown = [d for d in draws if d not in gen.DRAWS]
@@ -565,22 +685,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     data = Path(args.data)
     results = Path(args.results) if args.results else data / "results"
+    labels = [lb.strip() for lb in args.label.split(",") if lb.strip()]
+    if not labels or (args.stage in ("all", "diagnose") and len(labels) != 1):
+        print("error: --label: one label to diagnose, one or more to report", file=sys.stderr)
+        return 2
     for d in draws:
         print(f"draw {d} (seed {gen.DRAWS[d]}): " + gen.plan_table(gen.plan(gen.DRAWS[d])))
     if args.stage in ("all", "generate"):
         gen.generate(data, draws, args.workers, args.limit, args.start_until)
     if args.stage in ("all", "diagnose"):
         diagnose_all(
-            data, results, draws, args.workers, args.timeout, args.resume, args.limit,
-            args.start_until, time_limit=args.time_limit,
+            data, results / labels[0], draws, args.workers, args.timeout, args.resume, args.limit,
+            args.start_until, time_limit=args.time_limit, order=args.order,
         )  # fmt: skip
     if args.stage in ("all", "report"):
         from fricjax.bench.machine import describe
 
-        by = load_rows(data, results, draws)
+        by = load_rows(data, results, draws, labels)
         out = Path(args.report)
         out.parent.mkdir(parents=True, exist_ok=True)
-        report(by, out, header_of(by, results), describe().markdown())
+        report(by, out, header_of(by), describe().markdown())
         print(f"report: {out}")
     return 0
 
