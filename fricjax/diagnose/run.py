@@ -1321,7 +1321,8 @@ def _unexplained(loc: LocateReport, alpha: float) -> dict[str, Any] | None:
 
 def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
     """``unexplained`` over the whole record where a short record's base leaves an excess
-    over the noise of the third difference (:func:`~fricjax.diagnose.select.lack_of_fit_p`
+    over the recording's own noise (:mod:`~fricjax.diagnose.evidence`;
+    :func:`~fricjax.diagnose.select.lack_of_fit_p`
     below ``alpha``) that no candidate explains and the maps do not place: the record
     holds something the model lacks, nothing says what or where."""
     if not sel.steps or sel.steps[0].lack_of_fit_p >= alpha:
@@ -1332,8 +1333,8 @@ def _excess(problem: Problem, sel: Any, alpha: float) -> dict[str, Any] | None:
         "effect": "unexplained",
         "explanation": (
             "The fitted model leaves more residual than the measurement noise accounts for "
-            f"({excess:.1f} σ² in excess, p = {p:.2g}, against the noise estimated from the "
-            "third difference of x), "
+            f"({excess:.1f} σ² in excess, p = {p:.2g}, against the noise measured in the "
+            "recording's own displacement), "
             "but no catalogue term explains it and no single interval, band or frequency "
             "stands out: this record is too short to say where."
         ),
