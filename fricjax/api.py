@@ -629,6 +629,68 @@ def diagnose_recording(
     return diag, write_diagnosis(diag, out)
 
 
+def diagnose_recordings(
+    recordings: list[str | Path],
+    config: str | Path,
+    *,
+    out: str | Path,
+    mass: float | None = None,
+    overrides: dict[str, Any] | None = None,
+    effects: list[str] | None = None,
+    on_stage: Callable[[str, str], None] | None = None,
+) -> tuple[Any, dict[str, Path]]:
+    """``fricjax diagnose REC1 REC2 ...``: the diagnosis across recordings of one plant on
+    their joint fit (:mod:`fricjax.diagnose.across`: shared catalogue terms judged by
+    leaving one recording out, run-to-run drift); writes DIR/diagnosis.json and
+    DIR/report.md (atomic).
+
+    ``overrides``: ``alpha``, ``max_terms``, ``time_limit`` from the command line (the
+    ``[diagnose]`` table's ``alpha``, ``min_delta_bic``, ``max_terms``, ``time_limit``
+    otherwise); ``effects``: the catalogue entries to try (default all)."""
+    import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
+    from fricjax.diagnose.across import Budget, diagnose_across, write_across
+    from fricjax.diagnose.run import DiagnoseSettings
+    from fricjax.identify import CLI_SOURCE, IdentifySettings
+    from fricjax.joint import JointSettings
+
+    if len(recordings) < 2:
+        raise FricjaxError("diagnose: a diagnosis across recordings needs at least two")
+    inputs: dict[str, str | Path | None] = {f"recording {r}": r for r in recordings}
+    check_outputs(
+        [Path(out) / "diagnosis.json", Path(out) / "report.md"],
+        {**inputs, "--config": config},
+        "--out",
+    )
+    cfg = load_config(config)
+    joint = JointSettings.from_config(cfg)
+    ident = dataclasses.replace(
+        IdentifySettings.from_tables(cfg.tables, source=cfg.source), fast_compile=True
+    )
+    table = dict(cfg.table("diagnose"))
+    settings = DiagnoseSettings.from_dict(table, source=cfg.source)
+    cli = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if cli:
+        DiagnoseSettings.from_dict(cli, source=CLI_SOURCE, flags=True)
+        settings = DiagnoseSettings.from_dict({**table, **cli}, source=cfg.source)
+    budget = Budget()
+    if "time_limit" in cli or "time_limit" in table:
+        budget.total = float(settings.time_limit)
+    recs = alike_recordings(recordings, mass=mass)
+    problems = [build_problem(rec, cfg) for rec in recs]
+    diag = diagnose_across(
+        problems,
+        ident,
+        joint,
+        alpha=settings.alpha,
+        min_delta_bic=settings.min_delta_bic,
+        max_terms=settings.max_terms,
+        effects=effects,
+        budget=budget,
+        on_stage=on_stage,
+    )
+    return diag, write_across(diag, out)
+
+
 def simulate_recording(
     recording: str | Path | Recording,
     results: str | Path | None = None,

@@ -513,7 +513,14 @@ def _stage_progress(quiet: bool, console: Any = None) -> Iterator[Any]:
 
 @app.command()
 def diagnose(
-    recording: RecArg,
+    recordings: Annotated[
+        list[Path],
+        typer.Argument(
+            metavar="RECORDING...",
+            help="Recording (.h5 layout v1 or .csv); several of one plant: the diagnosis "
+            "across them on their joint fit (docs/joint.md)",
+        ),
+    ],
     config: DefaultConfigOpt = None,
     out: Annotated[Path, typer.Option(help="Output folder")] = Path("diagnosis"),
     validation: Annotated[
@@ -532,6 +539,12 @@ def diagnose(
     from fricjax.api import config_or_default, diagnose_recording, enable_compilation_cache
     from fricjax.report.tables import fmt
 
+    if len(recordings) > 1:
+        _diagnose_across(
+            recordings, config, out, validation, alpha, max_terms, time_limit, mass, quiet
+        )
+        return
+    recording = recordings[0]
     config = config_or_default(recording, config)
     _warn_scale(recording, config, mass)
     # most of a cold diagnosis is compilation; a later record of the same length and
@@ -564,6 +577,52 @@ def diagnose(
         typer.echo(f"time limit at {item['stage']}: {item['what']}")
     typer.echo(f"report: {paths['report']}")
     typer.echo(f"html: {paths['html']}")
+
+
+def _diagnose_across(
+    recordings: list[Path],
+    config: Path | None,
+    out: Path,
+    validation: Path | None,
+    alpha: float | None,
+    max_terms: int | None,
+    time_limit: float | None,
+    mass: float | None,
+    quiet: bool,
+) -> None:
+    """``diagnose REC1 REC2 ...``: the diagnosis across recordings (fricjax.diagnose.across)."""
+    from fricjax.api import diagnose_recordings, enable_compilation_cache
+
+    if config is None:
+        raise FricjaxError("--config: missing; a diagnosis across recordings needs one")
+    if validation is not None:
+        raise FricjaxError(
+            "--validation: with several recordings each is held out in turn; give no --validation"
+        )
+    enable_compilation_cache()
+
+    def on_stage(stage: str, detail: str) -> None:
+        if not quiet:
+            typer.echo(f"{stage}: {detail}", err=True)
+
+    diag, paths = diagnose_recordings(
+        list(recordings),
+        config,
+        out=out,
+        mass=mass,
+        overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
+        on_stage=on_stage,
+    )
+    if not diag.findings:
+        typer.echo("nothing found across the recordings (no shared term, no drift)")
+    for f in diag.findings:
+        typer.echo(
+            f"{f['name']} ({f['kind']}): p = {f['p_value']:.2g}, dBIC = {f['delta_bic']:.1f}"
+        )
+        typer.echo(f"  {f['explanation']}")
+    for item in diag.budget.skipped:
+        typer.echo(f"time limit at {item['stage']}: {item['what']}")
+    typer.echo(f"report: {paths['report']}")
 
 
 @app.command("init-config")

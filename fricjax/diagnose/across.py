@@ -59,11 +59,16 @@ undetermined (two opposite one-way strokes: one stroke cannot tell the Coulomb l
 the asymmetry) cannot judge and says so; when no fold can, the term stands on (a) and (b)
 and the finding says that the held-out check was not possible.
 
-Order. Terms are selected first (forward: the best ΔBIC among those that pass, up to
-``max_terms``), then drift is tested on the model with the selected terms. On one-way
-strokes a shared asymmetry and a Coulomb level that differs per stroke give the same
-fit; the shared term is the smaller explanation (no new parameter per recording), and the
-finding notes the alternative.
+Order. Terms are selected first (forward, up to ``max_terms``: among those that pass,
+the one that lowers the weighted joint cost most, less ``ln n`` per parameter; that ranks
+the explanations by fit, while W says how sure each test is, and a wrong explanation can
+score the larger W). Drift is tested next, on the model with the selected terms, forward
+too: the parameter ranked first among those that pass is named and made per recording,
+and the others are tested again beside it (a Coulomb level that moved in one run would
+otherwise also show as a viscous level that moved, the shared Coulomb level being wrong
+for that run). On one-way strokes a shared asymmetry and a Coulomb level that differs per
+stroke give the same fit; the shared term is the smaller explanation (no new parameter
+per recording), and the finding notes the alternative.
 
 Time. Every stage (``base_fit``, ``catalogue``, ``heldout``, ``drift``) runs under a time
 limit checked between units of work (one candidate's fit, one fold, one parameter's
@@ -493,6 +498,7 @@ def _judge_term(
             "p_threshold": alpha / n_tests,
             "delta_bic": dbic,
             "cost": {"before": fit.cost, "after": tfit.cost},
+            "rank": fit.cost - tfit.cost - (len(linear) + len(shape)) * math.log(n),
         }
     )
     if not test.determined:
@@ -618,7 +624,7 @@ def diagnose_across(
             round_records.append((rec, ext, tfit, c))
         passing = sorted(
             (r for r in round_records if r[0]["verdict"] == "passes p and ΔBIC"),
-            key=lambda r: -r[0]["delta_bic"],
+            key=lambda r: -r[0]["rank"],
         )
         chosen = None
         budget.enter("heldout")
@@ -639,6 +645,11 @@ def diagnose_across(
             tested.extend(r[0] for r in round_records)
             break
         rec, ext, tfit, c = chosen
+        for other in round_records:
+            if other[0]["verdict"] == "passes p and ΔBIC":
+                other[0]["verdict"] = (
+                    f"passes; {name_of(rec)} explains more (tested again beside it)"
+                )
         rec["explanation"] = _explain_term(c, rec, ext, tfit)
         findings.append(rec)
         tested.extend(r[0] for r in round_records if r[3] is not c)
@@ -646,19 +657,36 @@ def diagnose_across(
         pool = [q for q in pool if q is not c and _extend(ext, q) is not None]
         current, fit, fold_cache = ext, tfit, {}
 
-    # drift: one value per recording of each shared base parameter ----------------------
+    # drift: one value per recording of a shared base parameter, forward as the terms ----
     budget.enter("drift")
     drift_names = [n for n in problems[0].spec.free_names if n not in per]
-    for name in drift_names:
-        if budget.hit("drift"):
-            budget.skip("drift", f"drift of {name}: not tested (time limit)")
-            tested.append({"kind": "drift", "name": name, "verdict": "not tested (time limit)"})
-            continue
-        say("drift", f"{name} one value per recording")
-        rec = _drift(name, current, fit, per, sigma, nu, len(drift_names), alpha, bar)
+    remaining, layout = list(drift_names), per
+    while remaining:
+        records = []
+        for name in remaining:
+            if budget.hit("drift"):
+                budget.skip("drift", f"drift of {name}: not tested (time limit)")
+                records.append(
+                    ({"kind": "drift", "name": name, "verdict": "not tested (time limit)"}, None)
+                )
+                continue
+            say("drift", f"{name} one value per recording")
+            records.append(
+                _drift(name, current, fit, layout, sigma, nu, len(drift_names), alpha, bar)
+            )
+        named = [r for r in records if r[0]["verdict"] == "named"]
+        if not named:
+            tested.extend(r[0] for r in records)
+            break
+        rec, dfit = max(named, key=lambda r: r[0]["rank"])
+        for other, _ in named:
+            if other is not rec:
+                other["verdict"] = f"passes; {name_of(rec)} explains more (tested again beside it)"
+        tested.extend(r[0] for r in records if r[0] is not rec)
         tested.append(rec)
-        if rec["verdict"] == "named":
-            findings.append(rec)
+        findings.append(rec)
+        remaining.remove(rec["name"])
+        layout, fit = (*layout, rec["name"]), dfit
     budget.enter("drift")
 
     recordings = [
@@ -690,6 +718,11 @@ def diagnose_across(
     return AcrossDiagnosis(recordings, findings, tested, summary, settings, budget)
 
 
+def name_of(record: Mapping[str, Any]) -> str:
+    """How a finding is named: ``asymmetric_friction``, ``drift of Fc``."""
+    return record["name"] if record["kind"] == "term" else f"drift of {record['name']}"
+
+
 def _fit_summary(fit: JointFit) -> dict[str, Any]:
     sd = fit.std()
     return {
@@ -710,9 +743,9 @@ def _drift(
     n_tests: int,
     alpha: float,
     bar: float,
-) -> dict[str, Any]:
-    """Joint fit with ``name`` per recording; Wald test of ``name[k] = name[1]`` and the
-    recordings where it moved (module docstring)."""
+) -> tuple[dict[str, Any], JointFit]:
+    """Joint fit with ``name`` per recording (beside the ``per`` ones); the Wald test of
+    ``name[k] = name[1]`` and the recordings where it moved (module docstring)."""
     k_count = len(current)
     layout = (*per, name)
     jp = joint_problem(current, layout, sigma)
@@ -739,6 +772,8 @@ def _drift(
         "p_value": test.p_value,
         "p_threshold": alpha / n_tests,
         "delta_bic": dbic,
+        "cost": {"before": fit.cost, "after": dfit.cost},
+        "rank": fit.cost - dfit.cost - (k_count - 1) * math.log(dfit.jp.n),
     }
     if not test.determined:
         record["verdict"] = "not determined by these recordings"
@@ -760,7 +795,7 @@ def _drift(
             f"(W = {test.statistic:.1f} on {test.dof} degrees of freedom, p = "
             f"{test.p_value:.2g}); it moved in {', '.join(record['moved'])}."
         )
-    return record
+    return record, dfit
 
 
 def _moved(fit: JointFit, cols: Sequence[str], nu: int, level: float) -> list[int]:
