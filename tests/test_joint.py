@@ -17,7 +17,7 @@ from fricjax.api import identify_recording, identify_recordings, load, read_para
 from fricjax.cli import main
 from fricjax.config import load_config, parse_config
 from fricjax.data.recording import Recording, read_recording, write_recording
-from fricjax.data.twin import AXIS_TRUTH, axis_twin
+from fricjax.data.twin import AXIS_TRUTH, axis_twin, stroke_twin
 from fricjax.errors import FricjaxError
 from fricjax.io.results import read_results
 from fricjax.joint import (
@@ -224,9 +224,9 @@ def test_recordings_of_different_kinds_or_a_joint_file_misused_are_one_line(fitt
         assert f.attrs["kind"] == "joint"
 
 
-#: Two strokes of one axis whose Coulomb level differs with the direction (Fc ± asym_dFc),
-#: each moving one way only: alone a stroke cannot tell Fc from asym_dFc (both constant
-#: forces), together they can.
+#: Two strokes of one axis (fricjax.data.twin.stroke_twin) whose Coulomb level differs with
+#: the direction (Fc ± asym_dFc), each moving one way only: alone a stroke cannot tell Fc
+#: from asym_dFc (both constant forces), together they can.
 STROKE_TRUTH = {**AXIS_TRUTH, "Fc": 20.0, "asym_dFc": 4.0, "asym_dFv": 0.0}
 STROKES = """
 [model]
@@ -264,25 +264,9 @@ max_levels = 100
 
 
 def write_stroke(path: Path, direction: float, seed: int) -> Path:
-    """1 s from rest, pushed one way by ``direction·(1.5 + …)`` V: 0.8 V at least, 28 N, more
-    than the 24 N of Coulomb friction forward, so the axis never stops or turns."""
-    import jax.numpy as jnp
-
-    from fricjax.diagnose.catalogue import AsymmetricFriction
-    from fricjax.model.drive import MeasuredInput
-    from fricjax.model.friction import CoulombViscous
-    from fricjax.model.simulate import simulate
-    from fricjax.model.system import Model
-
-    t = np.arange(1000) / 1000.0
-    u = direction * (
-        1.5 + 0.4 * np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 1.0)
-    )
-    model = Model((MeasuredInput(), CoulombViscous(), AsymmetricFriction()))
-    p = {k: jnp.asarray(v) for k, v in STROKE_TRUTH.items()}
-    x = np.asarray(simulate(model, p, jnp.asarray(t), 0.0, 0.0, jnp.asarray(u), substeps=4).x)
-    x = x + np.random.default_rng(seed).normal(0.0, NOISE, t.size)
-    return write_recording(Recording(t=t, x=x, u=u, u_unit="V", name=f"stroke{seed}"), path)
+    dfc = STROKE_TRUTH["asym_dFc"]
+    rec = stroke_twin(direction, asym_dfc=dfc, noise_std=NOISE, seed=seed, name=f"stroke{seed}")
+    return write_recording(rec, path)
 
 
 @pytest.mark.slow  # ~25 s on 2 cores: a full (not separable) search, three times

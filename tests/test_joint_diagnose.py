@@ -7,79 +7,37 @@ bad input one line with exit 2."""
 from __future__ import annotations
 
 import json
-import tomllib
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from fricjax.api import diagnose_recordings
 from fricjax.cli import main
-from fricjax.config import load_config, parse_config
-from fricjax.data.recording import Recording, write_recording
-from fricjax.data.twin import AXIS_TRUTH, axis_twin
+from fricjax.config import load_config
+from fricjax.data.recording import write_recording
+from fricjax.data.twin import AXIS_TRUTH, axis_twin, stroke_twin
 from fricjax.diagnose.across import Budget, diagnose_across, fit_joint, wald
-from fricjax.diagnose.catalogue import AsymmetricFriction
 from fricjax.identify import IdentifySettings
 from fricjax.joint import JointSettings
-from fricjax.model.drive import MeasuredInput
-from fricjax.model.friction import CoulombViscous
-from fricjax.model.simulate import simulate
-from fricjax.model.system import Model
 from fricjax.problem import build_problem
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Coulomb + viscous shared, a drive offset per recording (tests/test_joint.py's axis).
 AXIS_CONFIG = ROOT / "configs" / "axis_joint.toml"
-#: The stroke axis: Coulomb + viscous shared, no offset (on a one-way stroke an offset is
-#: one more constant force, the Coulomb level's twin).
-STROKES = """
-[model]
-terms = ["measured_input", "coulomb_viscous"]
-
-[params]
-gain = { unit = "N/V", value = 35.0 }
-offset = { unit = "N", value = 0.0 }
-Fc = { unit = "N", lower = 0.0, upper = 100.0, init = 50.0 }
-Fv = { unit = "N*s/m", lower = 0.0, upper = 1000.0, init = 500.0 }
-mass = { unit = "kg", value = 95.0 }
-
-[preprocess]
-method = "butterworth"
-order = 4
-cutoff_hz = 200.0
-trim = 20
-
-[search]
-separable = true
-chains = 8
-seed = 0
-"""
+#: One-way strokes of the axis (fricjax.data.twin.stroke_twin), Coulomb + viscous shared.
+STROKES = ROOT / "configs" / "axis_strokes.toml"
 NOISE = 2e-6
 #: The catalogue entry the stroke tests try (each entry is one more compilation).
 EFFECTS = ("asymmetric_friction",)
 
 
-def stroke(direction: float, seed: int, asym_dfc: float) -> Recording:
-    """1 s from rest, pushed one way by ``direction·(1.5 + …)`` V (28 N at least, more than
-    the 24 N of Coulomb friction forward): the axis never stops or turns. Friction
-    ``(Fc ± asym_dFc)·sgn v + Fv·v`` with Fc = 20 N."""
-    t = np.arange(1000) / 1000.0
-    u = direction * (
-        1.5 + 0.4 * np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 1.0)
-    )
-    model = Model((MeasuredInput(), CoulombViscous(), AsymmetricFriction()))
-    truth = {**AXIS_TRUTH, "Fc": 20.0, "asym_dFc": asym_dfc, "asym_dFv": 0.0}
-    p = {k: jnp.asarray(v) for k, v in truth.items()}
-    x = np.asarray(simulate(model, p, jnp.asarray(t), 0.0, 0.0, jnp.asarray(u), substeps=4).x)
-    x = x + np.random.default_rng(seed).normal(0.0, NOISE, t.size)
-    return Recording(t=t, x=x, u=u, u_unit="V", name=f"stroke{seed}", mass=95.0)
-
-
 def stroke_problems(asym_dfc: float, seed: int = 0):
-    cfg = parse_config(tomllib.loads(STROKES))
-    recs = [stroke(d, seed + k, asym_dfc) for k, d in enumerate((1.0, -1.0))]
+    cfg = load_config(STROKES)
+    recs = [
+        stroke_twin(d, asym_dfc=asym_dfc, noise_std=NOISE, seed=seed + k, name=f"stroke{seed + k}")
+        for k, d in enumerate((1.0, -1.0))
+    ]
     return [build_problem(r, cfg) for r in recs], IdentifySettings.from_tables(cfg.tables)
 
 
@@ -111,6 +69,31 @@ def test_opposite_strokes_name_the_asymmetry_no_stroke_sees_alone(asymmetric) ->
     drift = {t["name"]: t for t in asymmetric.tested if t["kind"] == "drift"}
     assert drift["Fc"]["verdict"] == "not determined by these recordings"
     assert not [f for f in asymmetric.findings if f["kind"] == "drift"]
+
+
+@pytest.mark.slow  # ~25 s on 2 loaded cores: three recordings, new programs for the folds
+def test_leaving_out_a_stroke_whose_direction_repeats_judges_the_term_and_it_predicts() -> None:
+    cfg = load_config(STROKES)
+    dirs = (1.0, 1.0, -1.0)
+    recs = [
+        stroke_twin(d, asym_dfc=4.0, noise_std=NOISE, seed=30 + k, name=f"s{k + 1}")
+        for k, d in enumerate(dirs)
+    ]
+    problems = [build_problem(r, cfg) for r in recs]
+    diag = diagnose_across(
+        problems, IdentifySettings.from_tables(cfg.tables), JointSettings(), effects=EFFECTS
+    )
+    (finding,) = diag.findings
+    folds = {f["left_out"]: f for f in finding["heldout"]["folds"]}
+    # without s1 (or s2) the other two strokes still move both ways: the fold judges, and
+    # the base's Coulomb level, the mean of 24 N forward and 16 N back, misses the left-out
+    # forward stroke by 4 N a sample: a gain of n·(4 N)²/s_k² in its noise units
+    for k, name in enumerate(("s1", "s2")):
+        rec = diag.recordings[k]
+        expected = rec["n"] * 4.0**2 / rec["sigma_weight_N"] ** 2
+        assert 0.6 * expected < folds[name]["gain"] < 1.4 * expected, (folds[name], expected)
+    # without s3 both strokes move forward: nothing there tells Fc from asym_dFc
+    assert folds["s3"]["gain"] is None and finding["heldout"]["judged"] == 2
 
 
 def test_the_same_plant_without_the_asymmetry_names_nothing(symmetric) -> None:

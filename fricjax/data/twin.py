@@ -196,3 +196,49 @@ def axis_twin(
     )
     truth_out = {**{k: float(v) for k, v in params.items()}, "noise_std": float(noise_std)}
     return rec, truth_out
+
+
+def stroke_twin(
+    direction: float,
+    *,
+    asym_dfc: float = 0.0,
+    truth: Mapping[str, float] | None = None,
+    noise_std: float = 2e-6,
+    seed: int = 0,
+    duration: float = 1.0,
+    rate: float = 1000.0,
+    name: str | None = None,
+) -> Recording:
+    """One stroke of the measured-input axis of :func:`axis_twin`, moving one way only: from
+    rest, pushed by ``u(t) = direction·(1.5 + 0.4·sin(2π·1.3 t) + 0.3·sin(2π·3.1 t + 1))``
+    [V] (≥ 0.8 V, 28 N, more than the Coulomb level of :data:`AXIS_TRUTH` plus a few
+    newtons, so the axis never stops or turns). Friction ``(Fc ± asym_dfc)·sgn ẋ + Fv·ẋ``
+    for ẋ ≷ 0, the catalogue's direction asymmetry (``asymmetric_friction``, dFv = 0): on a
+    stroke that moves one way it is the Coulomb level ``Fc + sgn(direction)·asym_dfc``,
+    which is how it is simulated. ``truth`` defaults to :data:`AXIS_TRUTH`; white noise
+    of std ``noise_std`` [m] on x (numpy PCG64 ``seed``). The recording carries the mass."""
+    from fricjax.model.drive import MeasuredInput
+    from fricjax.model.friction import CoulombViscous
+
+    if duration <= 0 or rate <= 0 or noise_std < 0 or direction == 0:
+        raise FricjaxError("stroke twin: duration, rate > 0, noise_std >= 0, direction != 0")
+    params = dict(AXIS_TRUTH if truth is None else truth)
+    params["Fc"] = params["Fc"] + math.copysign(asym_dfc, direction)
+    t = np.arange(round(duration * rate), dtype=np.float64) / rate
+    u = direction * (
+        1.5 + 0.4 * np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 1.0)
+    )
+    model = Model((MeasuredInput(), CoulombViscous()))
+    p = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in params.items()}
+    x = np.asarray(simulate(model, p, jnp.asarray(t), 0.0, 0.0, jnp.asarray(u), substeps=4).x)
+    x = x + (np.random.default_rng(seed).normal(0.0, noise_std, t.size) if noise_std > 0 else 0.0)
+    return Recording(
+        t=t,
+        x=x,
+        u=u,
+        u_unit="V",
+        mass=float(params["mass"]),
+        name=name or f"stroke_s{seed}",
+        source="fricjax stroke twin (measured input, one direction)",
+        notes=f"noise_std={noise_std:g} m, seed={seed}, direction={direction:g}",
+    )
