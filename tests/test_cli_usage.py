@@ -54,7 +54,7 @@ pytestmark = pytest.mark.skipif(not SCRIPT.exists(), reason=f"no installed scrip
         (["sweep", TWIN, "--restarts", "0"], "'--restarts'"),
         (["simulate", TWIN, "--substeps", "0"], "'--substeps'"),
         (["validate", TWIN], "Missing option '--results'"),
-        (["diagnose", TWIN, "extra"], "unexpected extra argument"),
+        (["diagnose"], "Missing argument 'RECORDING...'"),
         (["bench", "nope"], "No such command 'nope'"),
         (["twin", "--duration", "x"], "'--duration'"),
     ],
