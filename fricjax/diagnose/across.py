@@ -70,10 +70,11 @@ for that run). On one-way strokes a shared asymmetry and a Coulomb level that di
 stroke give the same fit; the shared term is the smaller explanation (no new parameter
 per recording), and the finding notes the alternative.
 
-Time. Every stage (``base_fit``, ``catalogue``, ``heldout``, ``drift``) runs under a time
-limit checked between units of work (one candidate's fit, one fold, one parameter's
-drift fit): a stage that hits it stops there, and what it left out is reported
-(:class:`Budget`); a candidate left untested is never named.
+Time. The joint fit (``base_fit``) always runs; every later stage (``catalogue``,
+``heldout``, ``drift``) runs under its own limit and the total one, checked between units
+of work (one candidate's fit, one fold, one parameter's drift fit): a stage that hits a
+limit stops there, and what it left out is reported (:class:`Budget`); a candidate or
+parameter left untested is never named.
 """
 
 from __future__ import annotations
