@@ -97,7 +97,14 @@ from fricjax.diagnose.evidence import effective_dof, record_noise
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings
 from fricjax.io.atomic import make_folder, write_text_atomic
-from fricjax.joint import JointProblem, JointSettings, identify_joint, joint_problem, member_name
+from fricjax.joint import (
+    JointProblem,
+    JointSettings,
+    identify_joint,
+    joint_problem,
+    member_name,
+    split_name,
+)
 from fricjax.params import Param
 from fricjax.problem import Problem
 from fricjax.refine import RefineSettings, refine_many, value_and_jacobian
@@ -343,7 +350,7 @@ def _theta_for(jp: JointProblem, values: Mapping[str, float]) -> np.ndarray:
     out = np.empty(len(jp.names))
     init = {p.name: p.init for p in jp.problems[0].spec.params}
     for i, name in enumerate(jp.names):
-        base = name.rsplit("[", 1)[0] if name.endswith("]") else name
+        base = split_name(name)[0]
         out[i] = values.get(name, values.get(base, init.get(base, 0.0)))
     return out
 
@@ -406,17 +413,17 @@ def _fold_fit(
     sub = [members[k] for k in keep]
     jp = joint_problem(sub, per_recording, [sigma[k] for k in keep])
     full = _named(start)
-    vals = {n: full[n] for n in full if "[" not in n}
+    vals = _shared_values(start)
     for j, k in enumerate(keep):  # member k is member j of the fold
         vals.update({member_name(n, j): full[member_name(n, k)] for n in per_recording})
     fit = fit_joint(sub, per_recording, [sigma[k] for k in keep], _theta_for(jp, vals)[None])
-    shared = [i for i, n in enumerate(fit.jp.names) if "[" not in n]
+    shared = [i for i, n in enumerate(fit.jp.names) if split_name(n)[1] is None]
     return fit, bool(fit.determined(np.eye(len(fit.jp.names))[shared]).all())
 
 
 def _shared_values(fit: JointFit) -> dict[str, float]:
     """The shared parameters of a fit (a left-out member brings its own per-recording ones)."""
-    return {n: v for n, v in _named(fit).items() if "[" not in n}
+    return {n: v for n, v in _named(fit).items() if split_name(n)[1] is None}
 
 
 # -- the diagnosis ------------------------------------------------------------------------
@@ -826,7 +833,7 @@ def _moved(fit: JointFit, cols: Sequence[str], nu: int, level: float) -> list[in
 
 def _explain_term(cand: Candidate, rec: dict[str, Any], ext: list[Problem], tfit: JointFit) -> str:
     params = {**{p.name: p.init for p in ext[0].spec.params}, **_named(tfit)}
-    text = cand.explain({k: v for k, v in params.items() if "[" not in k}, ext[0])
+    text = cand.explain({k: v for k, v in params.items() if split_name(k)[1] is None}, ext[0])
     held = rec.get("heldout") or {}
     if held.get("judged"):
         text += (
