@@ -282,10 +282,11 @@ def test_opposite_strokes_jointly_determine_the_asymmetry_one_stroke_cannot(
     run, _ = identify_recordings(paths, config, out=tmp_path / "joint.h5")
     for name in ("Fc", "asym_dFc"):
         i = run.names.index(name)
-        assert np.isfinite(run.std[i]) and abs(run.value[i] - STROKE_TRUTH[name]) < 2 * run.std[i]
+        # one fixed noise draw: within 3 σ (a 2 σ band misses one draw in 22 by design)
+        assert np.isfinite(run.std[i]) and abs(run.value[i] - STROKE_TRUTH[name]) < 3 * run.std[i]
     # the asymmetry is seen: Fc + asym_dFc forward and Fc − asym_dFc backward differ
     i = run.names.index("asym_dFc")
-    assert run.value[i] > 2 * run.std[i]
+    assert run.value[i] > 10 * run.std[i]
 
 
 def test_the_command_line_gives_the_api_result(fitted, capsys, monkeypatch) -> None:
