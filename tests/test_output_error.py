@@ -18,6 +18,7 @@ import pytest
 from fricjax.config import load_config, parse_config
 from fricjax.data.recording import Recording
 from fricjax.data.twin import DEFAULT_NOISE_STD, PAPER_TRUTH
+from fricjax.diagnose.catalogue import candidate
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings, identify
 from fricjax.model.simulate import simulate
@@ -312,6 +313,61 @@ def test_batch_refuses_bad_starts_and_masks_in_one_line(open_loop):
         with pytest.raises(FricjaxError) as err:
             fit_output_error_batch(problem, starts, free)
         assert msg in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.slow  # ~1 min on 2 cores: three models of the simulator compiled
+def test_superset_rows_reproduce_the_fits_of_base_plus_one_term(open_loop):
+    """Base + asymmetric friction + Gaussian Stribeck (catalogue terms) as ONE model: the
+    row with one term free and the other pinned at its null is the fit of base + that term
+    alone. The record holds a direction asymmetry dFc = 2 N, which the first row finds."""
+    problem, _ = open_loop
+    asym, stribeck = candidate("asymmetric_friction"), candidate("stribeck")
+    superset = stribeck.extend_problem(asym.extend_problem(problem))
+    truth = {**superset.spec.as_dict(), **EMPS_TRUTH, "asym_dFc": 2.0}
+    p = {k: jnp.asarray(v) for k, v in truth.items()}
+    t, u = jnp.asarray(problem.t), jnp.asarray(problem.u)
+    clean = simulate(superset.model, p, t, problem.x[0], 0.0, u, substeps=8)
+    noise = np.random.default_rng(2).normal(0.0, 1e-5, problem.n)
+    x = np.asarray(clean.x) + noise
+    superset = replace(superset, x=x)
+    settings = OutputErrorSettings(segments=3)
+    spec = superset.spec
+    terms = {"asym": ("asym_dFc", "asym_dFv"), "stribeck": ("stribeck_A", "stribeck_vst")}
+    start = spec.flatten(START)  # the terms at their init: amplitudes 0, vst mid-grid
+    free = np.array(
+        [[q not in terms[other] for q in spec.free_names] for other in ("stribeck", "asym")]
+    )
+    rows = fit_output_error_batch(superset, np.stack([start, start]), free, settings)
+    for row, cand in zip(rows, (asym, stribeck), strict=True):
+        alone = cand.extend_problem(replace(problem, x=x))
+        single = fit_output_error(alone, START, settings)
+        assert row.names == single.names == list(alone.spec.free_names)
+        assert row.cost == pytest.approx(single.cost, rel=1e-6)
+        np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
+    assert rows[0].params["stribeck_A"] == 0.0
+    assert all(rows[1].params[q] == 0.0 for q in terms["asym"])
+    i = rows[0].names.index("asym_dFc")
+    assert abs(rows[0].value[i] - 2.0) < 3 * rows[0].std[i]
+    assert rows[0].cost < rows[1].cost  # the asymmetry, not a Stribeck drop, is in the record
+
+
+@pytest.mark.slow  # ~3 min on 2 cores: the 26-parameter simulator compiled twice
+def test_batch_rows_on_the_twin_equal_fits_with_fixed_parameters(twin_problem):
+    """On the paper twin (26 free parameters, one segment): three rows of one program, two
+    with parameters pinned, against single fits whose spec fixes the same values."""
+    spec = twin_problem.spec
+    start = _perturbed(twin_problem)
+    truth = {k: v for k, v in PAPER_TRUTH.items() if k in spec}
+    pins = [{}, {"omega": truth["omega"]}, {"Fc": truth["Fc"], "Fp_6": truth["Fp_6"]}]
+    starts = np.stack([spec.flatten({**spec.as_dict(start), **pin}) for pin in pins])
+    free = np.array([[q not in pin for q in spec.free_names] for pin in pins])
+    rows = fit_output_error_batch(twin_problem, starts, free)
+    for pin, row in zip(pins, rows, strict=True):
+        fixed = replace(twin_problem, spec=spec.with_fixed(pin))
+        single = fit_output_error(fixed, spec.as_dict(start))
+        assert row.names == single.names and row.n_steps == single.n_steps
+        assert row.cost == pytest.approx(single.cost, rel=1e-6)
+        np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
 
 
 def test_output_error_recovers_the_open_loop_truth(open_loop):
