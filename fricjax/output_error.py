@@ -77,8 +77,18 @@ models without it (the seed's harmonic drive, eq. 4) by their drive function of 
 
 Cost. ``substeps = 1`` by default: one RK4 step per sample was measured 4.7e-8 m off a
 16-sub-step reference over the 2 s twin (500× below its noise); raise it for stiffer
-dynamics. The Jacobian is assembled from d + 2 forward tangents by
-:meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not d + 2S.
+dynamics. The Jacobian is assembled from P + 2 forward tangents by
+:meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not P + 2S.
+
+Compilation and batching. The residual runs over all P parameters of the model, the
+fixed ones included, and a fit holds the components it does not move at their values by
+a mask (:func:`fit_output_error_batch`). What is static is only the model, the parameter
+names, the record's shape, the segmentation and the settings; the data, the start, the
+fixed values and the mask are traced. One program (LM and the Jacobian at its end point)
+is therefore compiled per (model, names, shapes, settings, B) and serves every record of
+that shape, every start and every choice of fixed parameters; B fits of one model (a
+superset model: a base and several extra terms, each term pinned at its null where it is
+not tested) run as one vmapped program (docs/output-error.md, "Speed and batching").
 
 Box. θ stays in the config's box. ``ξ_s`` is initialised at the recorded ``x_{k_s}`` and
 kept within ``±(20·σ_x + 0.01·range(x))``: the record is the true position plus noise of
@@ -113,6 +123,7 @@ from fricjax.refine import Refined, RefineSettings, _checked, _refine_one, uncer
 from fricjax.search.fast_compile import CLASSIC_EMITTERS
 
 __all__ = [
+    "TRACES",
     "OutputError",
     "OutputErrorFit",
     "OutputErrorSettings",
@@ -358,7 +369,8 @@ class OutputError(eqx.Module):
     def value_and_jacobian(
         self, theta_aug: Float[Array, " D"]
     ) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
-        """``r_aug`` and its Jacobian [n + 2(S − 1), d + 2S], using its block structure.
+        """``r_aug`` and its Jacobian [n + 2(S − 1), d + 2S] (d = P, every parameter), using
+        its block structure.
 
         Segment ``s`` depends on θ and on its own ``(ξ_s, ν_s)`` only, so d + 2 forward
         tangents of the trajectories give everything: one per θ component, one with

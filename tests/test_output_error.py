@@ -300,6 +300,13 @@ def test_batch_rows_equal_the_fits_whose_spec_fixes_their_pinned_parameters(open
     # the unpinned row is the fixture's own fit, and pinning costs fit quality
     assert rows[0].cost == pytest.approx(fit.cost, rel=1e-9)
     assert rows[1].cost > rows[0].cost and rows[2].cost > rows[0].cost
+    # each row restarted from its own end point (parameters and [B, S] states) starts there
+    ends = np.stack([spec.flatten(row.params) for row in rows])
+    states = (np.stack([r.states_x for r in rows]), np.stack([r.states_v for r in rows]))
+    again = fit_output_error_batch(problem, ends, free, settings, states)
+    for row, warm in zip(rows, again, strict=True):
+        assert warm.cost_start == pytest.approx(row.cost, rel=1e-9)
+        assert warm.cost <= row.cost * (1 + 1e-9)
 
 
 def test_batch_refuses_bad_starts_and_masks_in_one_line(open_loop):
