@@ -470,7 +470,7 @@ class _Pinned(eqx.Module):
 class OutputErrorSetup(NamedTuple):
     """The pieces of a fit over every parameter of the model: the residual, the augmented
     start x0 [P + 2S] (every parameter, then ξ and ν) inside its box [lower, upper]
-    (``lower = upper`` = the value for a parameter the spec fixes), ``free`` [P + 2S] (the
+    (a parameter the spec fixes sits at its value, inside its bounds), ``free`` [P + 2S] (the
     spec's free parameters and every segment state), the names of θ_aug (every parameter,
     ``x_seg<s>``, ``v_seg<s>``) and the segmentation."""
 
