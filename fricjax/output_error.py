@@ -77,8 +77,18 @@ models without it (the seed's harmonic drive, eq. 4) by their drive function of 
 
 Cost. ``substeps = 1`` by default: one RK4 step per sample was measured 4.7e-8 m off a
 16-sub-step reference over the 2 s twin (500× below its noise); raise it for stiffer
-dynamics. The Jacobian is assembled from d + 2 forward tangents by
-:meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not d + 2S.
+dynamics. The Jacobian is assembled from P + 2 forward tangents by
+:meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not P + 2S.
+
+Compilation and batching. The residual runs over all P parameters of the model, the
+fixed ones included, and a fit holds the components it does not move at their values by
+a mask (:func:`fit_output_error_batch`). What is static is only the model, the parameter
+names, the record's shape, the segmentation and the settings; the data, the start, the
+fixed values and the mask are traced. One program (LM and the Jacobian at its end point)
+is therefore compiled per (model, names, shapes, settings, B) and serves every record of
+that shape, every start and every choice of fixed parameters; B fits of one model (a
+superset model: a base and several extra terms, each term pinned at its null where it is
+not tested) run as one vmapped program (docs/output-error.md, "Speed and batching").
 
 Box. θ stays in the config's box. ``ξ_s`` is initialised at the recorded ``x_{k_s}`` and
 kept within ``±(20·σ_x + 0.01·range(x))``: the record is the true position plus noise of
@@ -93,30 +103,34 @@ smears them over a few ms), which 10 % of the range covers.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Mapping
+from functools import partial
 from typing import Any, Literal, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from fricjax.data.preprocess import PreprocessSettings, noise_gains
 from fricjax.errors import FricjaxError, where
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
-from fricjax.params import ParamSpec
 from fricjax.problem import Problem, needs_input
-from fricjax.refine import RefineSettings, refine, uncertainty
+from fricjax.refine import Refined, RefineSettings, _checked, _refine_one, uncertainty_at
+from fricjax.search.fast_compile import CLASSIC_EMITTERS
 
 __all__ = [
+    "TRACES",
     "OutputError",
     "OutputErrorFit",
     "OutputErrorSettings",
     "OutputErrorSetup",
     "Segmentation",
     "fit_output_error",
+    "fit_output_error_batch",
     "jacobian_at",
     "noise_scale",
     "output_error_residual",
@@ -288,12 +302,15 @@ def _simulate_segment(
 
 
 class OutputError(eqx.Module):
-    """Multiple-shooting output-error residual ``θ_aug [d + 2S] → r_aug [n + 2(S − 1)]``
-    (module docstring), dimensionless (units of σ_x). Data are array leaves, so one
-    compilation serves every record of the same shape."""
+    """Multiple-shooting output-error residual ``θ_aug [P + 2S] → r_aug [n + 2(S − 1)]``
+    (module docstring), dimensionless (units of σ_x), over EVERY parameter of the model
+    (``names``, fixed ones included: which of them a fit moves is the caller's mask, see
+    :func:`fit_output_error_batch`). Data and parameter values are array leaves and only
+    the model, the names, the shapes and the integrator settings are static, so one
+    compilation serves every record of the same shape and every choice of fixed values."""
 
     model: Model = eqx.field(static=True)
-    spec: ParamSpec = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True)
     t: Float[Array, "S L1"]
     u: Float[Array, "S L1"]
     x: Float[Array, " n"]
@@ -311,12 +328,12 @@ class OutputError(eqx.Module):
 
     @property
     def n_params(self) -> int:
-        return self.spec.n_free
+        return len(self.names)
 
     def split(
         self, theta_aug: Float[Array, " D"]
-    ) -> tuple[Float[Array, " d"], Float[Array, " S"], Float[Array, " S"]]:
-        """θ [d], segment start positions ξ [S] [m], start velocities ν [S] [m/s]."""
+    ) -> tuple[Float[Array, " P"], Float[Array, " S"], Float[Array, " S"]]:
+        """θ [P], segment start positions ξ [S] [m], start velocities ν [S] [m/s]."""
         d, S = self.n_params, self.n_segments
         return theta_aug[:d], theta_aug[d : d + S], theta_aug[d + S : d + 2 * S]
 
@@ -325,7 +342,7 @@ class OutputError(eqx.Module):
     ) -> tuple[Float[Array, "S L1"], Float[Array, "S L1"]]:
         """Simulated x [m] and v [m/s] of every segment, [S, L + 1] each."""
         theta, xi, nu = self.split(theta_aug)
-        p = self.spec.unflatten(theta)
+        p = {name: theta[i] for i, name in enumerate(self.names)}
 
         def one(t: Array, u: Array, x0: Array, v0: Array) -> tuple[Array, Array]:
             return _simulate_segment(self.model, p, t, u, x0, v0, self.substeps, self.hold)
@@ -352,7 +369,8 @@ class OutputError(eqx.Module):
     def value_and_jacobian(
         self, theta_aug: Float[Array, " D"]
     ) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
-        """``r_aug`` and its Jacobian [n + 2(S − 1), d + 2S], using its block structure.
+        """``r_aug`` and its Jacobian [n + 2(S − 1), d + 2S] (d = P, every parameter), using
+        its block structure.
 
         Segment ``s`` depends on θ and on its own ``(ξ_s, ν_s)`` only, so d + 2 forward
         tangents of the trajectories give everything: one per θ component, one with
@@ -405,6 +423,17 @@ class OutputError(eqx.Module):
         return _structured(self, theta_aug)
 
 
+@jax.jit
+def jacobian_at(
+    residual: OutputError, theta_aug: Float[Array, " D"]
+) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
+    """Jitted :meth:`OutputError.value_and_jacobian`: ``(r_aug, ∂r_aug/∂θ_aug)`` at
+    ``theta_aug`` (one compilation per residual shape). The residual's custom JVP and the
+    fit's Jacobian at its end point call it, so the simulation's linearisation, the
+    costliest trace of the fit, is traced once and its jaxpr reused."""
+    return residual.value_and_jacobian(theta_aug)
+
+
 @jax.custom_jvp
 def _structured(fn: OutputError, theta_aug: Array) -> Array:
     return fn.value(theta_aug)
@@ -414,7 +443,7 @@ def _structured(fn: OutputError, theta_aug: Array) -> Array:
 def _structured_jvp(primals: tuple, tangents: tuple) -> tuple[Array, Array]:
     fn, theta_aug = primals
     # the data (fn's leaves) are never differentiated: only θ_aug's tangent is used
-    r, jac = fn.value_and_jacobian(theta_aug)
+    r, jac = jacobian_at(fn, theta_aug)
     return r, jac @ tangents[1]
 
 
@@ -423,45 +452,33 @@ def _call(fn: eqx.Module, theta: Array) -> Array:
     return fn(theta)
 
 
-class _Jitted(eqx.Module):
-    """The residual behind one jit boundary (the refiner and the uncertainty trace it
-    several times; each trace then reuses one jaxpr instead of re-running the Python)."""
+class _Pinned(eqx.Module):
+    """``θ_aug ↦ r_aug(where(free, θ_aug, pin))``: the residual with the components outside
+    ``free`` held at ``pin`` (their Jacobian columns are zero, so Levenberg–Marquardt's
+    damped step leaves them at rest and moves the others exactly as it would in the
+    reduced problem). The residual sits behind one jit boundary: the refiner traces it
+    several times and each trace then reuses one jaxpr instead of re-running the Python."""
 
-    fn: eqx.Module
+    fn: OutputError
+    free: Bool[Array, " D"]
+    pin: Float[Array, " D"]
 
-    def __call__(self, theta: Array) -> Array:
-        return _call(self.fn, theta)
-
-
-@eqx.filter_jit
-def jacobian_at(
-    residual: OutputError, theta_aug: Float[Array, " D"]
-) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
-    """Jitted :meth:`OutputError.value_and_jacobian`: ``(r_aug, ∂r_aug/∂θ_aug)`` at
-    ``theta_aug`` (one compilation per residual shape)."""
-    return residual.value_and_jacobian(theta_aug)
-
-
-class _Affine(eqx.Module):
-    """``θ ↦ r0 + J·(θ − θ0)``: value and Jacobian of a residual at θ0, nothing else."""
-
-    r0: Float[Array, " m"]
-    jac: Float[Array, "m D"]
-    theta0: Float[Array, " D"]
-
-    def __call__(self, theta: Float[Array, " D"]) -> Float[Array, " m"]:
-        return self.r0 + self.jac @ (theta - self.theta0)
+    def __call__(self, theta_aug: Float[Array, " D"]) -> Float[Array, " m"]:
+        return _call(self.fn, jnp.where(self.free, theta_aug, self.pin))
 
 
 class OutputErrorSetup(NamedTuple):
-    """The pieces of a fit: the residual, the augmented start x0 [d + 2S] inside its box
-    [lower, upper], the names of θ_aug (free parameters, ``x_seg<s>``, ``v_seg<s>``) and
-    the segmentation."""
+    """The pieces of a fit over every parameter of the model: the residual, the augmented
+    start x0 [P + 2S] (every parameter, then ξ and ν) inside its box [lower, upper]
+    (a parameter the spec fixes sits at its value, inside its bounds), ``free`` [P + 2S] (the
+    spec's free parameters and every segment state), the names of θ_aug (every parameter,
+    ``x_seg<s>``, ``v_seg<s>``) and the segmentation."""
 
     residual: OutputError
     x0: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
+    free: np.ndarray
     names: list[str]
     seg: Segmentation
 
@@ -481,9 +498,10 @@ def output_error_residual(
     states: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> OutputErrorSetup:
     """The :class:`OutputError` residual of ``problem``, the augmented start vector and box
-    (θ clipped into the config's box; segment states from the record, or ``states`` =
+    (free parameters from ``start`` clipped into the config's box, missing ones at their
+    init, fixed ones at their value; segment states from the record, or ``states`` =
     (ξ [S], ν [S]) of an earlier fit with the same segmentation, clipped into their box),
-    and names."""
+    the free mask and the names."""
     settings = settings or OutputErrorSettings()
     spec = problem.spec
     t = np.asarray(problem.t, dtype=np.float64)
@@ -495,7 +513,11 @@ def output_error_residual(
     seg = segmentation(n, dt, settings)
     x_scale = settings.x_scale or noise_scale(x)
     known = {k: float(val) for k, val in start.items() if k in spec}
-    theta0 = np.clip(spec.flatten(known), spec.lower, spec.upper)
+    p_lower = np.array([p.lower for p in spec.params])
+    p_upper = np.array([p.upper for p in spec.params])
+    p_free = np.array([p.free for p in spec.params], dtype=bool)
+    values = np.array([known.get(p.name, p.init) if p.free else p.init for p in spec.params])
+    theta0 = np.clip(values, p_lower, p_upper)
     dx = _STATE_SIGMAS * x_scale + _X_RANGE_FRACTION * float(np.ptp(x))
     sigma_v = _state_sigma_v(problem.preprocess, dt, x_scale)
     dv = _STATE_SIGMAS * sigma_v + _V_RANGE_FRACTION * float(np.ptp(v))
@@ -508,20 +530,22 @@ def output_error_residual(
     tt, uu = _segment_grid(t, u, seg)
     residual = OutputError(
         model=problem.model,
-        spec=spec.structural(),
+        names=spec.names,
         t=jnp.asarray(tt),
         u=jnp.asarray(uu),
         x=jnp.asarray(x),
         seg=jnp.asarray(seg.seg),
         pos=jnp.asarray(seg.pos),
-        x_scale=jnp.asarray(x_scale),
-        v_to_x=jnp.asarray(seg.duration),
-        weight=jnp.asarray(settings.defect_weight * math.sqrt(seg.L)),
+        # float64, not weakly typed: the custom JVP's primals must have the avals of the
+        # fit's own call of jacobian_at for the two to share one trace
+        x_scale=jnp.asarray(x_scale, dtype=jnp.float64),
+        v_to_x=jnp.asarray(seg.duration, dtype=jnp.float64),
+        weight=jnp.asarray(settings.defect_weight * math.sqrt(seg.L), dtype=jnp.float64),
         substeps=settings.substeps,
         hold=settings.hold,
     )
     names = [
-        *spec.free_names,
+        *spec.names,
         *(f"x_seg{s}" for s in range(seg.S)),
         *(f"v_seg{s}" for s in range(seg.S)),
     ]
@@ -531,8 +555,9 @@ def output_error_residual(
     return OutputErrorSetup(
         residual=residual,
         x0=np.concatenate([theta0, xi_s, nu_s]),
-        lower=np.concatenate([spec.lower, xi0 - dx, nu0 - dv]),
-        upper=np.concatenate([spec.upper, xi0 + dx, nu0 + dv]),
+        lower=np.concatenate([p_lower, xi0 - dx, nu0 - dv]),
+        upper=np.concatenate([p_upper, xi0 + dx, nu0 + dv]),
+        free=np.concatenate([p_free, np.ones(2 * seg.S, dtype=bool)]),
         names=names,
         seg=seg,
     )
@@ -542,18 +567,19 @@ def output_error_residual(
 
 
 class OutputErrorFit(NamedTuple):
-    """Result of :func:`fit_output_error`.
+    """Result of :func:`fit_output_error` (one row of :func:`fit_output_error_batch`).
 
-    params: every model parameter by name (fixed ones included); names, value [d], std [d],
-    rel_std [d], corr [d, d], flags [d]: the free parameters, their values, Gauss–Newton σ
-    (white-residual assumption: on real data, where the misfit is model error, an
-    optimistic bound), correlations and identifiability flags (:func:`fricjax.refine.
-    uncertainty` on θ_aug, restricted to θ); cond: condition number of the scaled JᵀJ of
-    θ_aug; cost: E_OE at the optimum [-] (units of σ_x²); cost_start: at the start;
-    position_rms: √(mean((x_sim − x)²)) [m] over the n samples; x_sim [n]: the stitched
-    simulated position [m]; x_scale: σ_x [m]; defect_x, defect_v: max |defect| [m], [m/s];
-    states_x, states_v [S]: ξ [m], ν [m/s]; n_segments: S; segment_samples: L;
-    n_residual: length of r_aug; n_steps: LM iterations; success: LM converged.
+    params: every model parameter by name (fixed and pinned ones included); names, value
+    [d], std [d], rel_std [d], corr [d, d], flags [d]: the fitted parameters, their values,
+    Gauss–Newton σ (white-residual assumption: on real data, where the misfit is model
+    error, an optimistic bound), correlations and identifiability flags (:func:`fricjax.
+    refine.uncertainty_at` on the fitted components of θ_aug, restricted to θ); cond:
+    condition number of the scaled JᵀJ of those components; cost: E_OE at the optimum [-]
+    (units of σ_x²); cost_start: at the start; position_rms: √(mean((x_sim − x)²)) [m] over
+    the n samples; x_sim [n]: the stitched simulated position [m]; x_scale: σ_x [m];
+    defect_x, defect_v: max |defect| [m], [m/s]; states_x, states_v [S]: ξ [m], ν [m/s];
+    n_segments: S; segment_samples: L; n_residual: length of r_aug; n_steps: LM
+    iterations; success: LM converged.
     """
 
     params: dict[str, float]
@@ -588,6 +614,178 @@ def _check_problem(problem: Problem) -> None:
         raise FricjaxError(f"{where(src, '/u')}: all zero; the measured_input model has no drive")
 
 
+#: Traces of the batched fit program, by (model name, B, P + 2S, n): a numerical record
+#: of when :func:`fit_output_error_batch` compiles (a warm call adds nothing here).
+TRACES: Counter[tuple[str, int, int, int]] = Counter()
+
+
+def _fit_rows(
+    residual: OutputError,
+    x0s: Float[Array, "B D"],
+    free: Bool[Array, "B D"],
+    lower: Float[Array, "B D"],
+    upper: Float[Array, "B D"],
+    settings: RefineSettings,
+) -> tuple[Refined, Float[Array, "B m"], Float[Array, "B m D"]]:
+    """LM of every row (components outside ``free[b]`` pinned at ``x0s[b]``), then r_aug
+    and its Jacobian at each end point: one program, the rows vmapped (the batched
+    ``while_loop`` runs until the last row stops; each row keeps its own end point, step
+    count and convergence flag)."""
+    TRACES[(residual.model.name, *x0s.shape, residual.x.shape[0])] += 1
+
+    def one(x0: Array, keep: Array, lo: Array, hi: Array) -> tuple[Refined, Array, Array]:
+        out = _refine_one(_Pinned(residual, keep, x0), x0, lo, hi, settings)
+        # the pinned components come back from the box transform's round trip: restore them
+        x = jnp.where(keep, out.x, x0)
+        # through the residual's custom JVP, as the LM linearises it: that reuses the LM's
+        # trace of jacobian_at (a direct call would trace it again, in another context);
+        # J·I is J exactly
+        r, lin = jax.linearize(partial(_call, residual), x)
+        jac = jax.vmap(lin, out_axes=1)(jnp.eye(x.shape[0], dtype=x.dtype))
+        return out._replace(x=x), r, jac
+
+    if x0s.shape[0] == 1:
+        # vmap would turn the LM's branches into selects that evaluate both sides
+        out, r, jac = one(x0s[0], free[0], lower[0], upper[0])
+        return jax.tree.map(lambda a: a[None], (out, r, jac))
+    return jax.vmap(one)(x0s, free, lower, upper)
+
+
+# compile time is most of a cold fit's time, and the classic emitter saves a fifth of it
+_fit_rows_jit = eqx.filter_jit(_fit_rows, compiler_options=CLASSIC_EMITTERS)
+
+
+def fit_output_error_batch(
+    problem: Problem,
+    starts: Float[np.ndarray, "B d"],
+    free: Bool[np.ndarray, "B d"] | None = None,
+    settings: OutputErrorSettings | None = None,
+    states: tuple[np.ndarray, np.ndarray] | None = None,
+) -> list[OutputErrorFit]:
+    """B output-error fits of ONE model as one compiled program (:func:`fit_output_error`
+    row by row): row ``b`` starts from ``starts[b]`` (the spec's free parameters, in
+    ``problem.spec.free_names`` order) and fits those with ``free[b]`` set (default: all),
+    the others pinned at ``starts[b]``, together with the segment states.
+
+    The program is compiled once per (model, parameter names, record shape, segmentation,
+    B, settings): which parameters are pinned, at what values, and the data are traced.
+    So a superset model (a base and several extra terms, each term's amplitude pinned at
+    its null 0 where it is not tested) fits every candidate × start in one program, and a
+    row equals the fit of the model whose spec fixes its pinned parameters (same LM steps:
+    a pinned component has a zero Jacobian column, so the damped step leaves it at rest).
+
+    Args:
+        problem: as for :func:`fit_output_error`.
+        starts: [B, d] start values (clipped into the config's box), d = spec.n_free.
+        free: [B, d] bool, the parameters each row fits; None: all of them.
+        settings: :class:`OutputErrorSettings`.
+        states: segment states to start from, (ξ, ν) of shape [S] (every row) or [B, S].
+
+    Returns:
+        B :class:`OutputErrorFit`, in row order.
+    """
+    settings = settings or OutputErrorSettings()
+    _check_problem(problem)
+    spec = problem.spec
+    src = problem.source or problem.name or "output_error"
+    x0 = np.asarray(starts, dtype=np.float64)
+    d = spec.n_free
+    if x0.ndim != 2 or x0.shape[1] != d or x0.shape[0] < 1:
+        raise FricjaxError(
+            f"{where(src, 'starts')}: shape {x0.shape}, expected (B >= 1, {d}) for the free "
+            f"parameters {', '.join(spec.free_names)}"
+        )
+    B = x0.shape[0]
+    mask = np.ones((B, d), dtype=bool) if free is None else np.asarray(free)
+    if mask.shape != x0.shape or mask.dtype != np.bool_:
+        raise FricjaxError(f"{where(src, 'free')}: must be a bool array of shape {x0.shape}")
+    if not np.all(np.isfinite(x0)):
+        raise FricjaxError(f"{where(src, 'starts')}: not all finite")
+    setup = output_error_residual(problem, {}, settings, None)
+    P, S = len(spec.names), setup.seg.S
+    spec_free = setup.free[:P]
+    x0s = np.repeat(setup.x0[None], B, axis=0)
+    x0s[:, :P][:, spec_free] = np.clip(x0, spec.lower, spec.upper)
+    keep = np.repeat(setup.free[None], B, axis=0)
+    keep[:, :P][:, spec_free] = mask
+    if states is not None:
+        xi, nu = (np.asarray(a, dtype=np.float64) for a in states)
+        if xi.shape[-1:] != (S,) or nu.shape[-1:] != (S,) or xi.ndim > 2 or nu.ndim > 2:
+            raise FricjaxError(
+                f"output error: {xi.shape[-1] if xi.ndim else 0} segment states given for "
+                f"{S} segments"
+            )
+        xi, nu = np.broadcast_to(xi, (B, S)), np.broadcast_to(nu, (B, S))
+        lo_s, hi_s = setup.lower[P:], setup.upper[P:]
+        x0s[:, P:] = np.clip(np.concatenate([xi, nu], axis=1), lo_s, hi_s)
+    # A pinned component never moves, but the box transform of the LM needs lower < upper
+    # there: any finite interval around its value will do.
+    lower = np.where(keep, setup.lower, x0s - 1.0)
+    upper = np.where(keep, setup.upper, x0s + 1.0)
+    out, r_opt, jac = _fit_rows_jit(
+        setup.residual, x0s, keep, lower, upper, _checked(settings.refine_settings())
+    )
+    out, r_opt, jac = jax.device_get((out, r_opt, jac))
+    return [
+        _row_fit(problem, setup, keep[b], lower[b], upper[b], out, b, r_opt[b], jac[b])
+        for b in range(B)
+    ]
+
+
+def _row_fit(
+    problem: Problem,
+    setup: OutputErrorSetup,
+    keep: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    out: Refined,
+    b: int,
+    r: np.ndarray,
+    jac: np.ndarray,
+) -> OutputErrorFit:
+    """Row ``b`` of the batched program as an :class:`OutputErrorFit`; the uncertainty is
+    that of the row's fitted components of θ_aug (parameters and states), from r and J at
+    its end point."""
+    spec, seg, res = problem.spec, setup.seg, setup.residual
+    P, S, n = len(spec.names), seg.S, problem.n
+    x_aug = np.asarray(out.x[b], dtype=np.float64)
+    idx = np.flatnonzero(keep)
+    names = [setup.names[i] for i in idx]
+    unc = uncertainty_at(r, jac[:, idx], x_aug[idx], lower[idx], upper[idx], names=names)
+    d = int(np.count_nonzero(keep[:P]))
+    # x_sim and the defects from the residual: r = (x_sim − x)/σ_x, c^x = w√L·Δx/σ_x,
+    # c^v = w√L·Δv·T/σ_x.
+    sx, wt = float(res.x_scale), float(res.weight)
+    rec_x = np.asarray(problem.x)
+    x_sim = rec_x + sx * r[:n]
+    dx = r[n : n + S - 1] * sx / wt
+    dv = r[n + S - 1 :] * sx / (wt * seg.duration)
+    return OutputErrorFit(
+        params={name: float(x_aug[i]) for i, name in enumerate(spec.names)},
+        names=names[:d],
+        value=x_aug[idx[:d]],
+        std=np.asarray(unc.std[:d]),
+        rel_std=np.asarray(unc.rel_std[:d]),
+        corr=np.asarray(unc.corr[:d, :d]),
+        flags=[list(f) for f in unc.flags[:d]],
+        cond=float(unc.cond),
+        cost=float(out.cost_after[b]),
+        cost_start=float(out.cost_before[b]),
+        position_rms=float(np.sqrt(np.mean((x_sim - rec_x) ** 2))),
+        x_sim=x_sim,
+        x_scale=sx,
+        defect_x=float(np.max(np.abs(dx))) if dx.size else 0.0,
+        defect_v=float(np.max(np.abs(dv))) if dv.size else 0.0,
+        states_x=x_aug[P : P + S],
+        states_v=x_aug[P + S : P + 2 * S],
+        n_segments=S,
+        segment_samples=seg.L,
+        n_residual=int(r.shape[0]),
+        n_steps=int(out.n_steps[b]),
+        success=bool(out.success[b]),
+    )
+
+
 def fit_output_error(
     problem: Problem,
     start: Mapping[str, float],
@@ -595,9 +793,11 @@ def fit_output_error(
     states: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> OutputErrorFit:
     """Minimise E_OE (module docstring) over θ and the segment states by Levenberg–Marquardt
-    (:func:`fricjax.refine.refine`, sine box transform) from ``start`` (named values, e.g.
+    (:func:`fricjax.refine.refine`'s, sine box transform) from ``start`` (named values, e.g.
     the equation-error estimate; missing free names take the config's init), inside the
-    config's box for θ and the state box of the module docstring.
+    config's box for θ and the state box of the module docstring. The batched program of
+    :func:`fit_output_error_batch` with one row: it is compiled once per model, record
+    shape and segmentation, whatever the start, the data and the fixed values.
 
     Args:
         problem: the preprocessed recording and model (x, the preprocessed v for the state
@@ -608,54 +808,6 @@ def fit_output_error(
             earlier fit of the same record (``states_x``, ``states_v``); default: the
             record's.
     """
-    settings = settings or OutputErrorSettings()
-    _check_problem(problem)
-    setup = output_error_residual(problem, start, settings, states)
-    fn = _Jitted(setup.residual)
-    out = refine(fn, setup.x0, setup.lower, setup.upper, settings.refine_settings())
-    x_aug = np.asarray(out.x)
-    r_opt, jac = jacobian_at(setup.residual, jnp.asarray(x_aug))
-    # The uncertainty needs r and J at the optimum only: hand it the affine model
-    # r + J·(θ − θ*), which has exactly those, instead of compiling the simulation again.
-    unc = uncertainty(
-        _Affine(r_opt, jac, jnp.asarray(x_aug)),
-        jnp.asarray(x_aug),
-        setup.lower,
-        setup.upper,
-        names=setup.names,
-    )
-    d, S, n = problem.spec.n_free, setup.seg.S, problem.n
-    # x_sim and the defects from the residual: r = (x_sim − x)/σ_x, c^x = w√L·Δx/σ_x,
-    # c^v = w√L·Δv·T/σ_x.
-    r = np.asarray(r_opt)
-    res = setup.residual
-    sx, wt = float(res.x_scale), float(res.weight)
-    x_sim = np.asarray(problem.x) + sx * r[:n]
-    dx = r[n : n + S - 1] * sx / wt
-    dv = r[n + S - 1 :] * sx / (wt * setup.seg.duration)
-    theta = x_aug[:d]
-    rec_x = np.asarray(problem.x)
-    return OutputErrorFit(
-        params=problem.spec.as_dict(theta),
-        names=list(problem.spec.free_names),
-        value=theta,
-        std=np.asarray(unc.std[:d]),
-        rel_std=np.asarray(unc.rel_std[:d]),
-        corr=np.asarray(unc.corr[:d, :d]),
-        flags=[list(f) for f in unc.flags[:d]],
-        cond=float(unc.cond),
-        cost=float(out.cost_after),
-        cost_start=float(out.cost_before),
-        position_rms=float(np.sqrt(np.mean((x_sim - rec_x) ** 2))),
-        x_sim=x_sim,
-        x_scale=float(setup.residual.x_scale),
-        defect_x=float(np.max(np.abs(dx))) if dx.size else 0.0,
-        defect_v=float(np.max(np.abs(dv))) if dv.size else 0.0,
-        states_x=x_aug[d : d + S],
-        states_v=x_aug[d + S : d + 2 * S],
-        n_segments=S,
-        segment_samples=setup.seg.L,
-        n_residual=int(problem.n + 2 * (S - 1)),
-        n_steps=int(out.n_steps),
-        success=bool(out.success),
-    )
+    spec = problem.spec
+    known = {k: float(v) for k, v in start.items() if k in spec}
+    return fit_output_error_batch(problem, spec.flatten(known)[None], None, settings, states)[0]

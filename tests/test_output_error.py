@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import equinox as eqx
@@ -17,12 +18,15 @@ import pytest
 from fricjax.config import load_config, parse_config
 from fricjax.data.recording import Recording
 from fricjax.data.twin import DEFAULT_NOISE_STD, PAPER_TRUTH
+from fricjax.diagnose.catalogue import candidate
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings, identify
 from fricjax.model.simulate import simulate
 from fricjax.output_error import (
+    TRACES,
     OutputErrorSettings,
     fit_output_error,
+    fit_output_error_batch,
     jacobian_at,
     noise_scale,
     output_error_residual,
@@ -178,11 +182,13 @@ def test_multiple_shooting_has_the_single_shooting_optimum(open_loop):
     the Gauss–Newton step of the single-shooting residual from there is ≪ σ."""
     problem, fit = open_loop
     assert fit.success and (fit.n_segments, fit.segment_samples) == (3, 467)
-    single = output_error_residual(problem, fit.params, OutputErrorSettings(segments=1))
+    states = (fit.states_x[:1], fit.states_v[:1])
+    single = output_error_residual(problem, fit.params, OutputErrorSettings(segments=1), states)
     assert single.names[-2:] == ["x_seg0", "v_seg0"]
-    x = jnp.asarray(np.concatenate([fit.value, fit.states_x[:1], fit.states_v[:1]]))
-    r, jac = (np.asarray(a) for a in jacobian_at(single.residual, x))
-    step = np.linalg.lstsq(jac, -r, rcond=None)[0][: fit.value.size]
+    r, jac = (np.asarray(a) for a in jacobian_at(single.residual, jnp.asarray(single.x0)))
+    free = np.flatnonzero(single.free)  # the spec's free parameters, then ξ_0, ν_0
+    assert [single.names[i] for i in free[:-2]] == fit.names
+    step = np.linalg.lstsq(jac[:, free], -r, rcond=None)[0][: fit.value.size]
     # measured: < 1e-3 σ (the penalty moves the optimum by O(1/w²)); a 2-σ error in θ
     # would give a step of 2 σ
     np.testing.assert_array_less(np.abs(step), 0.01 * fit.std)
@@ -198,8 +204,10 @@ def test_structured_jacobian_equals_forward_mode(open_loop):
     setup = output_error_residual(problem, fit.params, OutputErrorSettings(segments=3))
     res = setup.residual
     x = jnp.asarray(setup.x0) + 1e-4  # off the record: every defect row is non-zero
-    r, jac = jacobian_at(res, x)  # compiled by the fit already
-    r_ref, ref = eqx.filter_jit(lambda m, z: (m.value(z), jax.jacfwd(m.value)(z)))(res, x)
+    # both in one program: one compilation of the simulator instead of two
+    (r, jac), r_ref, ref = eqx.filter_jit(
+        lambda m, z: (m.value_and_jacobian(z), m.value(z), jax.jacfwd(m.value)(z))
+    )(res, x)
     np.testing.assert_allclose(r, r_ref, rtol=1e-13)
     np.testing.assert_allclose(jac, ref, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
 
@@ -229,6 +237,146 @@ def test_a_warm_start_from_the_fitted_states_starts_at_the_optimum(open_loop):
         output_error_residual(problem, fit.params, settings, (fit.states_x[:2], fit.states_v[:2]))
 
 
+@pytest.fixture
+def backend_compiles():
+    """A list that grows by one entry per XLA compilation while the test runs."""
+    seen: list[float] = []
+
+    def listen(event: str, duration: float, **_: object) -> None:
+        if event == "/jax/core/compile/backend_compile_duration":
+            seen.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    yield seen
+    jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def test_a_fit_of_the_same_structure_and_shape_is_neither_traced_nor_compiled_again(
+    open_loop, backend_compiles
+):
+    """New start, new data of the same shape and other fixed values reuse the program of
+    the fixture's fit: no trace, no XLA compilation (the Jacobian at the optimum included)."""
+    problem, fit = open_loop
+    settings = OutputErrorSettings(segments=3)
+    traces = TRACES.copy()
+    noisier = problem.x + np.random.default_rng(7).normal(0.0, 1e-5, problem.n)
+    runs = {
+        "new start": (problem, {**START, "Fv": 230.0, "mass": 80.0}),
+        "new data": (replace(problem, x=noisier), START),
+        "Fc fixed": (replace(problem, spec=problem.spec.with_fixed({"Fc": 21.0})), START),
+    }
+    fits = {k: fit_output_error(p, s, settings) for k, (p, s) in runs.items()}
+    assert TRACES == traces and backend_compiles == []
+    # and they are fits: the same optimum from another start, another one on other data
+    # (10 µm more noise moves the mass by ~σ, not by its 3-σ tolerance), Fc held at 21 N
+    again = fits["new start"]
+    assert again.cost == pytest.approx(fit.cost, rel=1e-6)
+    i = fit.names.index("mass")
+    assert abs(fits["new data"].value[i] - fit.value[i]) < 3 * fit.std[i]
+    # 10 µm on top of 10 µm of noise: the misfit and σ_x grow by √2
+    assert fits["new data"].position_rms == pytest.approx(math.sqrt(2) * 1e-5, rel=0.1)
+    assert fits["new data"].x_scale == pytest.approx(math.sqrt(2) * fit.x_scale, rel=0.1)
+    held = fits["Fc fixed"]
+    assert held.params["Fc"] == 21.0 and "Fc" not in held.names and held.cost > fit.cost
+
+
+def test_batch_rows_equal_the_fits_whose_spec_fixes_their_pinned_parameters(open_loop):
+    """Row b of one batched program (some parameters pinned by the mask) is the single fit
+    of the problem whose spec fixes those parameters at the same values."""
+    problem, fit = open_loop
+    settings = OutputErrorSettings(segments=3)
+    spec = problem.spec
+    pins = [{}, {"Fc": 21.0}, {"offset": -3.0, "mass": 100.0}]
+    starts = np.stack([spec.flatten({**START, **pin}) for pin in pins])
+    free = np.array([[q not in pin for q in spec.free_names] for pin in pins])
+    rows = fit_output_error_batch(problem, starts, free, settings)
+    for pin, row in zip(pins, rows, strict=True):
+        single = fit_output_error(replace(problem, spec=spec.with_fixed(pin)), START, settings)
+        assert row.names == single.names and row.success == single.success
+        assert row.cost == pytest.approx(single.cost, rel=1e-6)
+        np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
+        np.testing.assert_allclose(row.std, single.std, rtol=1e-4)
+        assert all(row.params[q] == v for q, v in pin.items())
+    # the unpinned row is the fixture's own fit, and pinning costs fit quality
+    assert rows[0].cost == pytest.approx(fit.cost, rel=1e-9)
+    assert rows[1].cost > rows[0].cost and rows[2].cost > rows[0].cost
+    # each row restarted from its own end point (parameters and [B, S] states) starts there
+    ends = np.stack([spec.flatten(row.params) for row in rows])
+    states = (np.stack([r.states_x for r in rows]), np.stack([r.states_v for r in rows]))
+    again = fit_output_error_batch(problem, ends, free, settings, states)
+    for row, warm in zip(rows, again, strict=True):
+        assert warm.cost_start == pytest.approx(row.cost, rel=1e-9)
+        assert warm.cost <= row.cost * (1 + 1e-9)
+
+
+def test_batch_refuses_bad_starts_and_masks_in_one_line(open_loop):
+    problem, _ = open_loop
+    d = problem.spec.n_free
+    for starts, free, msg in (
+        (np.zeros((2, d + 1)), None, "starts: shape (2, 5), expected (B >= 1, 4)"),
+        (np.full((1, d), np.nan), None, "starts: not all finite"),
+        (np.ones((2, d)), np.ones((2, d)), "free: must be a bool array of shape (2, 4)"),
+    ):
+        with pytest.raises(FricjaxError) as err:
+            fit_output_error_batch(problem, starts, free)
+        assert msg in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.slow  # ~1 min on 2 cores: three models of the simulator compiled
+def test_superset_rows_reproduce_the_fits_of_base_plus_one_term(open_loop):
+    """Base + asymmetric friction + Gaussian Stribeck (catalogue terms) as ONE model: the
+    row with one term free and the other pinned at its null is the fit of base + that term
+    alone. The record holds a direction asymmetry dFc = 2 N, which the first row finds."""
+    problem, _ = open_loop
+    asym, stribeck = candidate("asymmetric_friction"), candidate("stribeck")
+    superset = stribeck.extend_problem(asym.extend_problem(problem))
+    truth = {**superset.spec.as_dict(), **EMPS_TRUTH, "asym_dFc": 2.0}
+    p = {k: jnp.asarray(v) for k, v in truth.items()}
+    t, u = jnp.asarray(problem.t), jnp.asarray(problem.u)
+    clean = simulate(superset.model, p, t, problem.x[0], 0.0, u, substeps=8)
+    noise = np.random.default_rng(2).normal(0.0, 1e-5, problem.n)
+    x = np.asarray(clean.x) + noise
+    superset = replace(superset, x=x)
+    settings = OutputErrorSettings(segments=3)
+    spec = superset.spec
+    terms = {"asym": ("asym_dFc", "asym_dFv"), "stribeck": ("stribeck_A", "stribeck_vst")}
+    start = spec.flatten(START)  # the terms at their init: amplitudes 0, vst mid-grid
+    free = np.array(
+        [[q not in terms[other] for q in spec.free_names] for other in ("stribeck", "asym")]
+    )
+    rows = fit_output_error_batch(superset, np.stack([start, start]), free, settings)
+    for row, cand in zip(rows, (asym, stribeck), strict=True):
+        alone = cand.extend_problem(replace(problem, x=x))
+        single = fit_output_error(alone, START, settings)
+        assert row.names == single.names == list(alone.spec.free_names)
+        assert row.cost == pytest.approx(single.cost, rel=1e-6)
+        np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
+    assert rows[0].params["stribeck_A"] == 0.0
+    assert all(rows[1].params[q] == 0.0 for q in terms["asym"])
+    i = rows[0].names.index("asym_dFc")
+    assert abs(rows[0].value[i] - 2.0) < 3 * rows[0].std[i]
+    assert rows[0].cost < rows[1].cost  # the asymmetry, not a Stribeck drop, is in the record
+
+
+@pytest.mark.slow  # ~3 min on 2 cores: the 26-parameter simulator compiled twice
+def test_batch_rows_on_the_twin_equal_fits_with_fixed_parameters(twin_problem):
+    """On the paper twin (26 free parameters, one segment): three rows of one program, two
+    with parameters pinned, against single fits whose spec fixes the same values."""
+    spec = twin_problem.spec
+    start = _perturbed(twin_problem)
+    truth = {k: v for k, v in PAPER_TRUTH.items() if k in spec}
+    pins = [{}, {"omega": truth["omega"]}, {"Fc": truth["Fc"], "Fp_6": truth["Fp_6"]}]
+    starts = np.stack([spec.flatten({**spec.as_dict(start), **pin}) for pin in pins])
+    free = np.array([[q not in pin for q in spec.free_names] for pin in pins])
+    rows = fit_output_error_batch(twin_problem, starts, free)
+    for pin, row in zip(pins, rows, strict=True):
+        fixed = replace(twin_problem, spec=spec.with_fixed(pin))
+        single = fit_output_error(fixed, spec.as_dict(start))
+        assert row.names == single.names and row.n_steps == single.n_steps
+        assert row.cost == pytest.approx(single.cost, rel=1e-6)
+        np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
+
+
 def test_output_error_recovers_the_open_loop_truth(open_loop):
     problem, fit = open_loop
     for k in ("offset", "Fc", "Fv", "mass"):
@@ -243,8 +391,6 @@ def test_output_error_recovers_the_open_loop_truth(open_loop):
 
 def test_a_constant_input_is_refused(open_loop):
     problem, _ = open_loop
-    from dataclasses import replace
-
     with pytest.raises(FricjaxError, match="/u: all zero"):
         fit_output_error(replace(problem, u=np.zeros_like(problem.u)), EMPS_TRUTH)
 
