@@ -66,7 +66,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fricjax.errors import FricjaxError, where
 from fricjax.model.system import Model
@@ -113,6 +113,24 @@ class _Interval(NamedTuple):
     t0: Float[Array, ""]
     u0: Float[Array, ""]
     du: Float[Array, ""]
+
+
+@jax.custom_batching.custom_vmap
+def _for_all_members(flag: Bool[Array, ""]) -> Bool[Array, ""]:
+    """``flag``; under ``vmap``, whether it holds for every member of the batch, unbatched.
+
+    A ``lax.cond`` on a batched predicate becomes a select that runs both branches; on this
+    reduction it stays a branch, taken for the whole batch (the slow branch must therefore
+    be right for every member, which the event machinery is)."""
+    return flag
+
+
+@_for_all_members.def_vmap
+def _for_all_members_vmap(
+    axis_size: int, in_batched: list[bool], flag: Bool[Array, " b"]
+) -> tuple[Bool[Array, ""], bool]:
+    del axis_size
+    return (jnp.all(flag, axis=0) if in_batched[0] else flag), False
 
 
 def _illinois(fn: Callable[[Array], Array], f_lo: Array, f_hi: Array) -> Float[Array, ""]:
@@ -230,6 +248,21 @@ def simulate(
     Returns:
         :class:`Trajectory` (x, v, a), each [n], ``x[0] = x0``, ``v[0] = v0``.
     """
+    return _simulate(model, p, t, x0, v0, u, substeps, skip_quiet=True)
+
+
+def _simulate(
+    model: Model,
+    p: Mapping[str, Float[ArrayLike, ""]],
+    t: Float[Array, " n"],
+    x0: Float[ArrayLike, ""],
+    v0: Float[ArrayLike, ""],
+    u: Float[Array, " n"] | None,
+    substeps: int,
+    skip_quiet: bool,
+) -> Trajectory:
+    """:func:`simulate`; ``skip_quiet=False`` sends every sub-step through the event
+    machinery (the arithmetic the quiet path must reproduce; the tests compare the two)."""
     t = jnp.asarray(t, dtype=jnp.float64)
     _check(model, p, t, None if u is None else jnp.asarray(u), substeps)
     u = jnp.zeros_like(t) if u is None else jnp.asarray(u, dtype=jnp.float64)
@@ -255,9 +288,8 @@ def simulate(
         s = signals(iv, tau, x, v)
         return (model.drive(p, s) - friction_branch(s, d)) / mass
 
-    def slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
-        """RK4 over ``r`` in direction ``d``; stops at v = 0 if it is reached. ``d = 0`` or
-        ``r = 0``: nothing happens. Returns (tau, x, v, r_left)."""
+    def rk4(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
+        """One classical RK4 step of length ``r`` on branch ``d``: (x1, v1, ẍ(tau), ẍ(tau + r))."""
         rk_a, rk_c = jnp.asarray(_RK_A), jnp.asarray(_RK_C)
 
         def stage(i: int, ks: tuple[Array, Array]) -> tuple[Array, Array]:
@@ -270,9 +302,12 @@ def simulate(
         # compiled graph, and above all its reverse-mode derivative, small.
         zeros = jnp.zeros(5, dtype=x.dtype) + 0 * x
         kx, kv = jax.lax.fori_loop(0, 5, stage, (zeros, zeros))
-        x1 = x + r * jnp.dot(rk_a[4], kx)
-        v1 = v + r * jnp.dot(rk_a[4], kv)
-        k1, a1 = kv[0], kv[4]
+        return x + r * jnp.dot(rk_a[4], kx), v + r * jnp.dot(rk_a[4], kv), kv[0], kv[4]
+
+    def slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
+        """RK4 over ``r`` in direction ``d``; stops at v = 0 if it is reached. ``d = 0`` or
+        ``r = 0``: nothing happens. Returns (tau, x, v, r_left)."""
+        x1, v1, k1, a1 = rk4(iv, tau, x, v, r, d)
         moving = (d != 0) & (r > 0)
         stops = moving & (d * v1 <= 0)
         m0, m1 = r * k1, r * a1
@@ -289,10 +324,10 @@ def simulate(
         s = signals(iv, tau, x, jnp.zeros_like(x))
         return d * model.drive(pp, s) - jnp.abs(model.static(pp, s, d))
 
-    def stick_or_slip(iv: _Interval, tau: Array, x: Array, v: Array, r: Array) -> tuple:
-        """At rest: when (if at all within ``r``) and which way the body breaks away.
-        Returns (tau, r_left, direction); a sliding body passes through with d = sgn v."""
-        rest = v == 0
+    def breakaway_test(iv: _Interval, tau: Array, x: Array, r: Array) -> tuple:
+        """At rest over [tau, tau + r]: does the drive exceed the static limit at once
+        (``now``, direction d0) or only by the end (``later``, direction d1, with the
+        excesses e_lo, e_hi at both ends in direction d1)?"""
         s0 = signals(iv, tau, x, jnp.zeros_like(x))
         s1 = signals(iv, tau + r, x, jnp.zeros_like(x))
         f0, f1 = model.drive(p, s0), model.drive(p, s1)
@@ -302,6 +337,13 @@ def simulate(
         e_lo = d1 * f0 - jnp.abs(model.static(p, s0, d1))
         e_hi = d1 * f1 - jnp.abs(model.static(p, s1, d1))
         later = (~now) & (e_hi > 0) & (r > 0)
+        return now, later, d0, d1, e_lo, e_hi
+
+    def stick_or_slip(iv: _Interval, tau: Array, x: Array, v: Array, r: Array) -> tuple:
+        """At rest: when (if at all within ``r``) and which way the body breaks away.
+        Returns (tau, r_left, direction); a sliding body passes through with d = sgn v."""
+        rest = v == 0
+        now, later, d0, d1, e_lo, e_hi = breakaway_test(iv, tau, x, r)
         theta = _root(
             lambda s, a: excess(a[0], a[1], a[2] + s * a[3], a[4], a[5]),
             (p, iv, tau, r, x, jax.lax.stop_gradient(d1)),
@@ -317,7 +359,9 @@ def simulate(
             jnp.where(rest, d, jnp.sign(v)),
         )
 
-    def substep(iv: _Interval, tau: Array, x: Array, v: Array) -> tuple[Array, Array]:
+    def events(iv: _Interval, tau: Array, x: Array, v: Array) -> tuple[Array, Array]:
+        """A sub-step through the full event machinery: ``_PHASES`` × (slide, stick/slip)."""
+
         def phase(_: int, state: tuple) -> tuple:
             tau, x, v, r, d = state
             tau, x, v, r = slide(iv, tau, x, v, r, d)
@@ -328,6 +372,24 @@ def simulate(
         state = (tau, x, v, h + jnp.zeros_like(x), jnp.sign(v))
         _, x, v, _, _ = jax.lax.fori_loop(0, _PHASES, phase, state)
         return x, v
+
+    def substep(iv: _Interval, tau: Array, x: Array, v: Array) -> tuple[Array, Array]:
+        if not skip_quiet:
+            return events(iv, tau, x, v)
+        # Quiet sub-steps (a slide that does not reach v = 0, or a rest the drive cannot
+        # break) are most of a record; for them the event machinery returns the plain RK4
+        # step, resp. the unchanged state, bit for bit, so it runs only where needed.
+        r = h + jnp.zeros_like(x)
+        d = jnp.sign(v)
+        x1, v1, _, _ = rk4(iv, tau, x, v, r, d)
+        now, later, _, _, _, _ = breakaway_test(iv, tau, x, r)
+        rest = v == 0
+        quiet = jnp.where(rest, ~now & ~later, d * v1 > 0)
+        return jax.lax.cond(
+            _for_all_members(quiet),
+            lambda: (jnp.where(rest, x, x1), jnp.where(rest, v, v1)),
+            lambda: events(iv, tau, x, v),
+        )
 
     def interval(carry: tuple[Array, Array], data: tuple) -> tuple:
         t0, u0, u1 = data
