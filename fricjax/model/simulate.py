@@ -120,8 +120,8 @@ def _for_all_members(flag: Bool[Array, ""]) -> Bool[Array, ""]:
     """``flag``; under ``vmap``, whether it holds for every member of the batch, unbatched.
 
     A ``lax.cond`` on a batched predicate becomes a select that runs both branches; on this
-    reduction it stays a branch, taken for the whole batch (the slow branch must therefore
-    be right for every member, which the event machinery is)."""
+    reduction it stays a branch, taken for the whole batch (so the working branch must be
+    right for every member, which the event machinery is)."""
     return flag
 
 
@@ -248,7 +248,7 @@ def simulate(
     Returns:
         :class:`Trajectory` (x, v, a), each [n], ``x[0] = x0``, ``v[0] = v0``.
     """
-    return _simulate(model, p, t, x0, v0, u, substeps, skip_quiet=True)
+    return _simulate(model, p, t, x0, v0, u, substeps, skip_idle=True)
 
 
 def _simulate(
@@ -259,10 +259,10 @@ def _simulate(
     v0: Float[ArrayLike, ""],
     u: Float[Array, " n"] | None,
     substeps: int,
-    skip_quiet: bool,
+    skip_idle: bool,
 ) -> Trajectory:
-    """:func:`simulate`; ``skip_quiet=False`` sends every sub-step through the event
-    machinery (the arithmetic the quiet path must reproduce; the tests compare the two)."""
+    """:func:`simulate`; ``skip_idle=False`` runs every part of the event machinery on every
+    sub-step (the arithmetic the skipping must reproduce; the tests compare the two)."""
     t = jnp.asarray(t, dtype=jnp.float64)
     _check(model, p, t, None if u is None else jnp.asarray(u), substeps)
     u = jnp.zeros_like(t) if u is None else jnp.asarray(u, dtype=jnp.float64)
@@ -271,6 +271,13 @@ def _simulate(
     mass = p["mass"]
     dt = t[1] - t[0]
     h = dt / substeps
+
+    def unless(idle: Array, passthrough: Callable[[], Any], work: Callable[[], Any]) -> Any:
+        """``work()``, or ``passthrough()`` when ``idle`` holds (for the whole batch):
+        ``passthrough`` returns what ``work`` would for an idle state, bit for bit."""
+        if not skip_idle:
+            return work()
+        return jax.lax.cond(_for_all_members(idle), passthrough, work)
 
     def signals(iv: _Interval, tau: Array, x: Array, v: Array) -> Signals:
         return Signals(tau, x, v, iv.u0 + iv.du * (tau - iv.t0))
@@ -288,8 +295,13 @@ def _simulate(
         s = signals(iv, tau, x, v)
         return (model.drive(p, s) - friction_branch(s, d)) / mass
 
-    def rk4(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
-        """One classical RK4 step of length ``r`` on branch ``d``: (x1, v1, ẍ(tau), ẍ(tau + r))."""
+    def slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
+        """RK4 over ``r`` in direction ``d``; stops at v = 0 if it is reached. ``d = 0`` or
+        ``r = 0``: nothing happens. Returns (tau, x, v, r_left)."""
+        moving = (d != 0) & (r > 0)
+        return unless(~moving, lambda: (tau, x, v, r), lambda: _slide(iv, tau, x, v, r, d))
+
+    def _slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
         rk_a, rk_c = jnp.asarray(_RK_A), jnp.asarray(_RK_C)
 
         def stage(i: int, ks: tuple[Array, Array]) -> tuple[Array, Array]:
@@ -302,16 +314,17 @@ def _simulate(
         # compiled graph, and above all its reverse-mode derivative, small.
         zeros = jnp.zeros(5, dtype=x.dtype) + 0 * x
         kx, kv = jax.lax.fori_loop(0, 5, stage, (zeros, zeros))
-        return x + r * jnp.dot(rk_a[4], kx), v + r * jnp.dot(rk_a[4], kv), kv[0], kv[4]
-
-    def slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
-        """RK4 over ``r`` in direction ``d``; stops at v = 0 if it is reached. ``d = 0`` or
-        ``r = 0``: nothing happens. Returns (tau, x, v, r_left)."""
-        x1, v1, k1, a1 = rk4(iv, tau, x, v, r, d)
+        x1 = x + r * jnp.dot(rk_a[4], kx)
+        v1 = v + r * jnp.dot(rk_a[4], kv)
+        k1, a1 = kv[0], kv[4]
         moving = (d != 0) & (r > 0)
         stops = moving & (d * v1 <= 0)
         m0, m1 = r * k1, r * a1
-        theta = _root(lambda s, a: _hermite_v(s, *a), (v, v1, m0, m1), v, v1)
+        theta = unless(
+            ~stops,
+            lambda: jnp.zeros_like(v),
+            lambda: _root(lambda s, a: _hermite_v(s, *a), (v, v1, m0, m1), v, v1),
+        )
         xc = x + r * _hermite_x(theta, v, v1, m0, m1)
         tau_n = jnp.where(stops, tau + theta * r, jnp.where(moving, tau + r, tau))
         x_n = jnp.where(stops, xc, jnp.where(moving, x1, x))
@@ -324,10 +337,16 @@ def _simulate(
         s = signals(iv, tau, x, jnp.zeros_like(x))
         return d * model.drive(pp, s) - jnp.abs(model.static(pp, s, d))
 
-    def breakaway_test(iv: _Interval, tau: Array, x: Array, r: Array) -> tuple:
-        """At rest over [tau, tau + r]: does the drive exceed the static limit at once
-        (``now``, direction d0) or only by the end (``later``, direction d1, with the
-        excesses e_lo, e_hi at both ends in direction d1)?"""
+    def stick_or_slip(iv: _Interval, tau: Array, x: Array, v: Array, r: Array) -> tuple:
+        """At rest: when (if at all within ``r``) and which way the body breaks away.
+        Returns (tau, r_left, direction); a sliding body passes through with d = sgn v."""
+        rest = v == 0
+        return unless(
+            ~rest, lambda: (tau, r, jnp.sign(v)), lambda: _stick_or_slip(iv, tau, x, v, r)
+        )
+
+    def _stick_or_slip(iv: _Interval, tau: Array, x: Array, v: Array, r: Array) -> tuple:
+        rest = v == 0
         s0 = signals(iv, tau, x, jnp.zeros_like(x))
         s1 = signals(iv, tau + r, x, jnp.zeros_like(x))
         f0, f1 = model.drive(p, s0), model.drive(p, s1)
@@ -337,18 +356,15 @@ def _simulate(
         e_lo = d1 * f0 - jnp.abs(model.static(p, s0, d1))
         e_hi = d1 * f1 - jnp.abs(model.static(p, s1, d1))
         later = (~now) & (e_hi > 0) & (r > 0)
-        return now, later, d0, d1, e_lo, e_hi
-
-    def stick_or_slip(iv: _Interval, tau: Array, x: Array, v: Array, r: Array) -> tuple:
-        """At rest: when (if at all within ``r``) and which way the body breaks away.
-        Returns (tau, r_left, direction); a sliding body passes through with d = sgn v."""
-        rest = v == 0
-        now, later, d0, d1, e_lo, e_hi = breakaway_test(iv, tau, x, r)
-        theta = _root(
-            lambda s, a: excess(a[0], a[1], a[2] + s * a[3], a[4], a[5]),
-            (p, iv, tau, r, x, jax.lax.stop_gradient(d1)),
-            e_lo,
-            e_hi,
+        theta = unless(
+            ~later,
+            lambda: jnp.zeros_like(x),
+            lambda: _root(
+                lambda s, a: excess(a[0], a[1], a[2] + s * a[3], a[4], a[5]),
+                (p, iv, tau, r, x, jax.lax.stop_gradient(d1)),
+                e_lo,
+                e_hi,
+            ),
         )
         d = jnp.where(now, d0, jnp.where(later, d1, 0.0))
         tau_b = jnp.where(now, tau, jnp.where(later, tau + theta * r, tau + r))
@@ -359,9 +375,7 @@ def _simulate(
             jnp.where(rest, d, jnp.sign(v)),
         )
 
-    def events(iv: _Interval, tau: Array, x: Array, v: Array) -> tuple[Array, Array]:
-        """A sub-step through the full event machinery: ``_PHASES`` × (slide, stick/slip)."""
-
+    def substep(iv: _Interval, tau: Array, x: Array, v: Array) -> tuple[Array, Array]:
         def phase(_: int, state: tuple) -> tuple:
             tau, x, v, r, d = state
             tau, x, v, r = slide(iv, tau, x, v, r, d)
@@ -372,24 +386,6 @@ def _simulate(
         state = (tau, x, v, h + jnp.zeros_like(x), jnp.sign(v))
         _, x, v, _, _ = jax.lax.fori_loop(0, _PHASES, phase, state)
         return x, v
-
-    def substep(iv: _Interval, tau: Array, x: Array, v: Array) -> tuple[Array, Array]:
-        if not skip_quiet:
-            return events(iv, tau, x, v)
-        # Quiet sub-steps (a slide that does not reach v = 0, or a rest the drive cannot
-        # break) are most of a record; for them the event machinery returns the plain RK4
-        # step, resp. the unchanged state, bit for bit, so it runs only where needed.
-        r = h + jnp.zeros_like(x)
-        d = jnp.sign(v)
-        x1, v1, _, _ = rk4(iv, tau, x, v, r, d)
-        now, later, _, _, _, _ = breakaway_test(iv, tau, x, r)
-        rest = v == 0
-        quiet = jnp.where(rest, ~now & ~later, d * v1 > 0)
-        return jax.lax.cond(
-            _for_all_members(quiet),
-            lambda: (jnp.where(rest, x, x1), jnp.where(rest, v, v1)),
-            lambda: events(iv, tau, x, v),
-        )
 
     def interval(carry: tuple[Array, Array], data: tuple) -> tuple:
         t0, u0, u1 = data
