@@ -50,11 +50,33 @@ otherwise the branch is only C^⌊δ⌋ at ``v = 0⁺`` (infinite slope for ``de
 order drops near stops. ``u`` enters through its linear interpolant, reproduced exactly (its
 kinks sit on sub-step boundaries).
 
-Everything is written with ``jnp.where`` inside the scan, so :func:`simulate` can be
-``jit``-compiled, ``vmap``-ed over parameter dicts and differentiated with respect to them.
-The root iterations run on ``stop_gradient``-ed values and end with one Newton step on the
-live parameters, which carries the implicit-function derivative of every event time
-(checked against finite differences) without unrolling the iterations in reverse mode.
+Everything is written with ``jnp.where`` and ``lax.cond`` inside the scan, so
+:func:`simulate` can be ``jit``-compiled, ``vmap``-ed over parameter dicts and
+differentiated with respect to them (forward and reverse mode). The root iterations run on
+``stop_gradient``-ed values and end with one Newton step on the live parameters, which
+carries the implicit-function derivative of every event time (checked against finite
+differences) without unrolling the iterations in reverse mode.
+
+Cost of a step
+--------------
+Events are rare: on most sub-steps the body slides without reaching ``v = 0``, or stays
+stuck under a drive it can hold. Each part of the event machinery therefore sits behind a
+``lax.cond`` and runs only when it has work: the RK4 slide only for a moving body with time
+left (so the second phase of a quiet sub-step costs nothing), the stop location only when
+the slide ended with ``d·v ≤ 0``, the stick/slip test only for a body at rest, the
+breakaway location only when the drive overcomes the static limit inside the interval. A
+quiet sliding sub-step costs one RK4 step (5 force evaluations); a quiet stuck one the
+drive and the static limits at the interval's ends, twice (one test per phase). The skipped branch
+returns exactly what the ``jnp.where`` selections would have picked, so values and
+derivatives are unchanged (tested against the path that evaluates everything, to rounding).
+
+Under ``vmap`` (parameter batches, the output error's segments) a ``lax.cond`` on a batched
+predicate would become a select that evaluates both branches. The predicates are therefore
+reduced over the batch first (:func:`_for_all_members`, a ``custom_vmap``): the machinery is
+skipped when no member needs it, and otherwise runs for all (it is right for idle members
+too). Forward tangents (``jax.linearize`` then ``vmap`` over tangent directions, as the
+output error does) keep the branch: the predicate is a primal value, the same for every
+tangent. Compile time is unchanged (each part is traced once, as before).
 """
 
 from __future__ import annotations
@@ -66,7 +88,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fricjax.errors import FricjaxError, where
 from fricjax.model.system import Model
@@ -113,6 +135,24 @@ class _Interval(NamedTuple):
     t0: Float[Array, ""]
     u0: Float[Array, ""]
     du: Float[Array, ""]
+
+
+@jax.custom_batching.custom_vmap
+def _for_all_members(flag: Bool[Array, ""]) -> Bool[Array, ""]:
+    """``flag``; under ``vmap``, whether it holds for every member of the batch, unbatched.
+
+    A ``lax.cond`` on a batched predicate becomes a select that runs both branches; on this
+    reduction it stays a branch, taken for the whole batch (so the working branch must be
+    right for every member, which the event machinery is)."""
+    return flag
+
+
+@_for_all_members.def_vmap
+def _for_all_members_vmap(
+    axis_size: int, in_batched: list[bool], flag: Bool[Array, " b"]
+) -> tuple[Bool[Array, ""], bool]:
+    del axis_size
+    return (jnp.all(flag, axis=0) if in_batched[0] else flag), False
 
 
 def _illinois(fn: Callable[[Array], Array], f_lo: Array, f_hi: Array) -> Float[Array, ""]:
@@ -230,6 +270,21 @@ def simulate(
     Returns:
         :class:`Trajectory` (x, v, a), each [n], ``x[0] = x0``, ``v[0] = v0``.
     """
+    return _simulate(model, p, t, x0, v0, u, substeps, skip_idle=True)
+
+
+def _simulate(
+    model: Model,
+    p: Mapping[str, Float[ArrayLike, ""]],
+    t: Float[Array, " n"],
+    x0: Float[ArrayLike, ""],
+    v0: Float[ArrayLike, ""],
+    u: Float[Array, " n"] | None,
+    substeps: int,
+    skip_idle: bool,
+) -> Trajectory:
+    """:func:`simulate`; ``skip_idle=False`` runs every part of the event machinery on every
+    sub-step (the arithmetic the skipping must reproduce; the tests compare the two)."""
     t = jnp.asarray(t, dtype=jnp.float64)
     _check(model, p, t, None if u is None else jnp.asarray(u), substeps)
     u = jnp.zeros_like(t) if u is None else jnp.asarray(u, dtype=jnp.float64)
@@ -238,6 +293,13 @@ def simulate(
     mass = p["mass"]
     dt = t[1] - t[0]
     h = dt / substeps
+
+    def unless(idle: Array, passthrough: Callable[[], Any], work: Callable[[], Any]) -> Any:
+        """``work()``, or ``passthrough()`` when ``idle`` holds (for the whole batch):
+        ``passthrough`` returns what ``work`` would for an idle state, bit for bit."""
+        if not skip_idle:
+            return work()
+        return jax.lax.cond(_for_all_members(idle), passthrough, work)
 
     def signals(iv: _Interval, tau: Array, x: Array, v: Array) -> Signals:
         return Signals(tau, x, v, iv.u0 + iv.du * (tau - iv.t0))
@@ -258,6 +320,10 @@ def simulate(
     def slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
         """RK4 over ``r`` in direction ``d``; stops at v = 0 if it is reached. ``d = 0`` or
         ``r = 0``: nothing happens. Returns (tau, x, v, r_left)."""
+        moving = (d != 0) & (r > 0)
+        return unless(~moving, lambda: (tau, x, v, r), lambda: _slide(iv, tau, x, v, r, d))
+
+    def _slide(iv: _Interval, tau: Array, x: Array, v: Array, r: Array, d: Array) -> tuple:
         rk_a, rk_c = jnp.asarray(_RK_A), jnp.asarray(_RK_C)
 
         def stage(i: int, ks: tuple[Array, Array]) -> tuple[Array, Array]:
@@ -276,7 +342,11 @@ def simulate(
         moving = (d != 0) & (r > 0)
         stops = moving & (d * v1 <= 0)
         m0, m1 = r * k1, r * a1
-        theta = _root(lambda s, a: _hermite_v(s, *a), (v, v1, m0, m1), v, v1)
+        theta = unless(
+            ~stops,
+            lambda: jnp.zeros_like(v),
+            lambda: _root(lambda s, a: _hermite_v(s, *a), (v, v1, m0, m1), v, v1),
+        )
         xc = x + r * _hermite_x(theta, v, v1, m0, m1)
         tau_n = jnp.where(stops, tau + theta * r, jnp.where(moving, tau + r, tau))
         x_n = jnp.where(stops, xc, jnp.where(moving, x1, x))
@@ -293,6 +363,12 @@ def simulate(
         """At rest: when (if at all within ``r``) and which way the body breaks away.
         Returns (tau, r_left, direction); a sliding body passes through with d = sgn v."""
         rest = v == 0
+        return unless(
+            ~rest, lambda: (tau, r, jnp.sign(v)), lambda: _stick_or_slip(iv, tau, x, v, r)
+        )
+
+    def _stick_or_slip(iv: _Interval, tau: Array, x: Array, v: Array, r: Array) -> tuple:
+        rest = v == 0
         s0 = signals(iv, tau, x, jnp.zeros_like(x))
         s1 = signals(iv, tau + r, x, jnp.zeros_like(x))
         f0, f1 = model.drive(p, s0), model.drive(p, s1)
@@ -302,11 +378,15 @@ def simulate(
         e_lo = d1 * f0 - jnp.abs(model.static(p, s0, d1))
         e_hi = d1 * f1 - jnp.abs(model.static(p, s1, d1))
         later = (~now) & (e_hi > 0) & (r > 0)
-        theta = _root(
-            lambda s, a: excess(a[0], a[1], a[2] + s * a[3], a[4], a[5]),
-            (p, iv, tau, r, x, jax.lax.stop_gradient(d1)),
-            e_lo,
-            e_hi,
+        theta = unless(
+            ~later,
+            lambda: jnp.zeros_like(x),
+            lambda: _root(
+                lambda s, a: excess(a[0], a[1], a[2] + s * a[3], a[4], a[5]),
+                (p, iv, tau, r, x, jax.lax.stop_gradient(d1)),
+                e_lo,
+                e_hi,
+            ),
         )
         d = jnp.where(now, d0, jnp.where(later, d1, 0.0))
         tau_b = jnp.where(now, tau, jnp.where(later, tau + theta * r, tau + r))

@@ -24,7 +24,7 @@ from fricjax.config import Config
 from fricjax.errors import FricjaxError
 from fricjax.model.drive import HarmonicDrive, MeasuredInput
 from fricjax.model.friction import CoulombViscous, StribeckFriction
-from fricjax.model.simulate import Trajectory, simulate
+from fricjax.model.simulate import Trajectory, _simulate, simulate
 from fricjax.model.system import Model
 
 # --------------------------------------------------------------------------------------
@@ -427,3 +427,55 @@ def test_gradient_through_stick_slip_matches_finite_differences() -> None:
         step = 1e-6 * abs(float(theta[i]))
         fd = (float(loss(theta.at[i].add(step))) - float(loss(theta.at[i].add(-step)))) / (2 * step)
         assert abs(grad[i] - fd) <= 1e-6 * abs(fd), name
+
+
+def test_skipping_idle_event_machinery_changes_nothing() -> None:
+    # Idle parts of the event machinery (a slide that does not stop, a body not at rest, no
+    # breakaway) are skipped by a lax.cond taken for a whole vmap batch. The skipped parts
+    # must change nothing: trajectories and their forward derivatives equal those of the
+    # path that evaluates everything, on a batch of stick-slip records whose stops and
+    # breakaways differ.
+    term, fric, _ = STICK_SLIP_CASES["stribeck"]
+    model = Model((HarmonicDrive(harmonics=1), term))
+    base = jparams({**SLOW, **fric})
+    names = ("Fp_1", "Fc", "Fs", "vs", "mass")
+    t = jnp.asarray(T_SLOW)
+    theta0 = jnp.stack([base[k] for k in names])
+    thetas = theta0 * jnp.asarray(
+        [[1.0] * 5, [1.03, 0.97, 1.0, 1.1, 1.0], [0.95, 1.0, 1.04, 1.0, 0.9]]
+    )
+    # a relative tangent mixing every parameter, [batch, 5]
+    dirs = thetas * jnp.asarray([0.3, -0.2, 0.5, 0.1, -0.4])
+
+    def run(skip_idle: bool) -> tuple[Trajectory, Trajectory]:
+        def batch(th: jax.Array) -> Trajectory:
+            def one(theta: jax.Array) -> Trajectory:
+                p = {**base, **{k: theta[i] for i, k in enumerate(names)}}
+                return _simulate(model, p, t, 0.0, 0.0, None, 2, skip_idle)
+
+            return jax.vmap(one)(th)
+
+        def tangents(th: jax.Array, d: jax.Array) -> tuple[Trajectory, Trajectory]:
+            return jax.jvp(batch, (th,), (d,))
+
+        return jax.jit(tangents)(thetas, dirs)
+
+    (fast, dfast), (full, dfull) = run(True), run(False)
+    for k in range(thetas.shape[0]):
+        v = np.asarray(full.v[k])
+        assert len(runs_of_rest(v)) >= 3 and sign_changes(v) >= 2  # stops, rests, reversals
+    for got, want in zip((*fast, *dfast), (*full, *dfull), strict=True):
+        scale = np.max(np.abs(np.asarray(want)))
+        assert scale > 0
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0, atol=1e-12 * scale)
+    # Rest is exact in both: the same samples are stuck.
+    np.testing.assert_array_equal(np.asarray(fast.v) == 0, np.asarray(full.v) == 0)
+    # Unbatched, the cond is a plain branch: the same trajectory again.
+    alone = simulate(model, base, t, 0.0, 0.0, substeps=2)
+    for got, want in zip(alone, full, strict=True):
+        np.testing.assert_allclose(
+            np.asarray(got),
+            np.asarray(want[0]),
+            rtol=0,
+            atol=1e-12 * np.max(np.abs(np.asarray(want[0]))),
+        )
