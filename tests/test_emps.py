@@ -176,8 +176,9 @@ def test_the_catalogue_asymmetry_reproduces_the_authors_variant(recs, cfg, run):
 @pytest.mark.slow
 def test_blind_diagnosis_names_asymmetry_and_beats_the_published_model(recs, cfg, tmp_path):
     """``fricjax diagnose`` on DATA_EMPS, blind (whole catalogue, configs/emps.toml), with
-    the pulse file held out: it names the direction asymmetry, and its model predicts the *validation* file better than the published
-    symmetric one (decimated IDIM relative error, EMS at 1 kHz). ~3-7 min."""
+    the pulse file held out: it names the direction asymmetry, and its model predicts the
+    *validation* file better than the published symmetric one (decimated IDIM relative
+    error, EMS at 1 kHz). ~3-7 min."""
     from fricjax.api import diagnose_recording
     from fricjax.data.recording import write_recording
 
