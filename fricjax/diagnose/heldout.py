@@ -179,9 +179,7 @@ class Split:
             why[part] = untested_place(place, record_part(before.problem, c, d))
             if why[part]:
                 continue
-            short = too_short(
-                record_part(after.problem, a, b), after.problem.spec.n_free, self.settings
-            )
+            short = too_short(record_part(after.problem, a, b), after.n_free, self.settings)
             if short:
                 return Verdict("split", on, False, why=short)
             costs = []

@@ -47,9 +47,10 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy import stats
 
-from fricjax.diagnose.catalogue import CATALOGUE, Candidate, candidate
+from fricjax.diagnose.catalogue import CATALOGUE, candidate
 from fricjax.diagnose.evidence import NearRest
 from fricjax.model.simulate import simulate
+from fricjax.model.system import Model
 from fricjax.output_error import OutputErrorFit, OutputErrorSettings, fit_output_error
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
@@ -57,31 +58,105 @@ from fricjax.problem import EquationError, Problem
 __all__ = [
     "CandidateFit",
     "Fitted",
+    "Superset",
     "fit_base",
     "fit_candidates",
-    "judge",
     "lack_of_fit_p",
     "starts",
 ]
 
 
 @dataclass(frozen=True)
+class Superset:
+    """The base model with every simulable, applicable candidate's term appended: ONE model,
+    so that one compiled output-error program serves the base fit, every candidate's fit at
+    every step and every held-out fit of a record of that length.
+
+    A model "base + active terms" is this superset with every other term *pinned*: its
+    parameters' box collapsed to ``±1e-9`` of its search range around its null (amplitudes
+    0, shape parameters at their grid's middle), where its force is zero to within 1e-9 of
+    its range. The box is not part of the compiled program (``ParamSpec.structural``), the
+    free/fixed pattern is, so pinning this way costs no compilation; a pinned parameter's
+    Jacobian column vanishes and Levenberg–Marquardt's damping leaves it where it is.
+
+    Attributes:
+        record: the record with the base model.
+        problem: the record with the superset model, every parameter in its search range.
+        names: each effect's parameters (in the superset spec).
+    """
+
+    record: Problem
+    problem: Problem
+    names: dict[str, tuple[str, ...]]
+
+    @classmethod
+    def build(cls, record: Problem) -> Superset:
+        """The superset of ``record``'s base model (the catalogue's order)."""
+        model, spec, names = record.model, record.spec, {}
+        for c in CATALOGUE:
+            if not (c.simulable and c.applicable(model, spec)):
+                continue
+            before = set(spec.names)
+            model, spec = c.extend(model, spec, record)
+            names[c.effect] = tuple(n for n in spec.names if n not in before)
+        return cls(record, replace(record, model=model, spec=spec), names)
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        return tuple(self.names)
+
+    def model(self, active: Sequence[str]) -> Problem:
+        """The record with base + ``active`` terms: every other term pinned (docstring)."""
+        spec = self.problem.spec
+        pinned = {n for e, ns in self.names.items() if e not in active for n in ns}
+        params = []
+        for q in spec.params:
+            if q.name in pinned and q.free:
+                half = 1e-9 * (q.upper - q.lower)
+                q = replace(q, lower=q.init - half, upper=q.init + half)
+            params.append(q)
+        return replace(self.problem, spec=replace(spec, params=tuple(params)))
+
+    def n_free(self, active: Sequence[str]) -> int:
+        """Free parameters of base + ``active`` (the pinned ones are not free)."""
+        own = sum(self.problem.spec[n].free for e in active for n in self.names[e])
+        return self.record.spec.n_free + own
+
+
+@dataclass(frozen=True)
 class Fitted:
-    """A model fitted to the record by output error: ``problem`` carries the model and spec,
+    """A model fitted to the record by output error: base + ``active`` terms of ``superset``,
     ``fit`` the output-error fit (cost in σ_x²)."""
 
-    problem: Problem
+    superset: Superset
+    active: tuple[str, ...]
     fit: OutputErrorFit
 
     @property
+    def problem(self) -> Problem:
+        """The record with this model (the superset, the inactive terms pinned)."""
+        return self.superset.model(self.active)
+
+    @property
+    def n_free(self) -> int:
+        return self.superset.n_free(self.active)
+
+    @property
     def theta(self) -> np.ndarray:
-        """Free parameters [d] at the optimum (the problem's spec order)."""
-        return self.problem.spec.flatten(self.fit.params)
+        """All superset parameters [D] at the optimum (the superset spec's order)."""
+        return self.superset.problem.spec.flatten(self.fit.params)
 
     @property
     def cost(self) -> float:
         """E at the optimum [σ_x²]."""
         return float(self.fit.cost)
+
+    def reduced(self) -> tuple[Model, ParamSpec, np.ndarray]:
+        """(model, spec, θ) of base + the active terms alone, for files a user reads."""
+        model, spec = self.superset.record.model, self.superset.record.spec
+        for e in self.active:
+            model, spec = candidate(e).extend(model, spec, self.superset.record)
+        return model, spec, spec.flatten({n: self.fit.params[n] for n in spec.free_names})
 
 
 @dataclass(frozen=True)
@@ -111,14 +186,10 @@ class CandidateFit:
         return self.p_value < limit and self.delta_bic > min_delta_bic
 
 
-def applicable(problem: Problem) -> list[Candidate]:
-    """The catalogue entries the judge tries on ``problem``'s model."""
-    return [c for c in CATALOGUE if c.simulable and c.applicable(problem.model, problem.spec)]
-
-
-def fit_base(problem: Problem, start: Mapping[str, float], settings: OutputErrorSettings) -> Fitted:
+def fit_base(sup: Superset, start: Mapping[str, float], settings: OutputErrorSettings) -> Fitted:
     """The base model fitted by output error from ``start`` (named values)."""
-    return Fitted(problem, fit_output_error(problem, dict(start), settings))
+    full = {**sup.problem.spec.as_dict(), **dict(start)}
+    return Fitted(sup, (), fit_output_error(sup.model(()), full, settings))
 
 
 def f_pvalue(lr: Float[np.ndarray, "..."], k: int, nu: int) -> Float[np.ndarray, "..."]:
@@ -148,22 +219,21 @@ def fit_candidates(
     (amplitudes at their null, nonlinear parameters at each start), the best start kept,
     judged against ``base`` (module docstring). The one place where the candidates'
     output-error fits run."""
-    problem, n = base.problem, base.problem.n
+    sup, n = base.superset, base.superset.record.n
     states = (base.fit.states_x, base.fit.states_v)
     out = []
     for effect, nl_starts in candidates:
+        active = (*base.active, effect)
+        pb = sup.model(active)
         best: Fitted | None = None
         for nl in nl_starts or ({},):
-            ext = candidate(effect).extend_problem(problem, nl)
-            fit = fit_output_error(ext, dict(base.fit.params), settings, states)
+            fit = fit_output_error(pb, {**base.fit.params, **nl}, settings, states)
             if best is None or fit.cost < best.fit.cost:
-                best = Fitted(ext, fit)
+                best = Fitted(sup, active, fit)
         assert best is not None
-        k = best.problem.spec.n_free - problem.spec.n_free
+        k = best.n_free - base.n_free
         lr, p, dbic = _judge_numbers(base.cost, best.fit, k, n, nu)
-        own = {q: float(v) for q, v in best.fit.params.items() if q not in problem.spec}
-        if effect == "mass_error":
-            own = {"mass_eps": float(best.fit.params["mass_eps"])}
+        own = {q: float(best.fit.params[q]) for q in sup.names[effect]}
         out.append(CandidateFit(effect, best, base, k, lr, p, dbic, own))
     return out
 
@@ -171,17 +241,13 @@ def fit_candidates(
 def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> CandidateFit:
     """``cf`` judged against the lower of its base and the base refitted from where the
     candidate's fit ended (module docstring)."""
-    problem = cf.base.problem
-    fit = fit_output_error(
-        problem,
-        dict(cf.fitted.fit.params),
-        settings,
-        (cf.fitted.fit.states_x, cf.fitted.fit.states_v),
-    )
+    end = cf.fitted.fit
+    start = {**end.params, **{q: cf.base.fit.params[q] for q in cf.base.superset.names[cf.effect]}}
+    fit = fit_output_error(cf.base.problem, start, settings, (end.states_x, end.states_v))
     if fit.cost >= cf.base.cost:
         return cf
-    base = Fitted(problem, fit)
-    lr, p, dbic = _judge_numbers(base.cost, cf.fitted.fit, cf.k, problem.n, nu)
+    base = Fitted(cf.base.superset, cf.base.active, fit)
+    lr, p, dbic = _judge_numbers(base.cost, end, cf.k, base.superset.record.n, nu)
     return replace(cf, base=base, lr=lr, p_value=p, delta_bic=dbic)
 
 
@@ -190,7 +256,7 @@ def lack_of_fit_p(fitted: Fitted, nu: int) -> float:
     ``ν_r = n_residual − d − 2S`` residual degrees of freedom (d parameters, S segments' two
     states) follows ``F(ν_r, ν)`` when the model is right."""
     f = fitted.fit
-    dof = max(f.n_residual - fitted.problem.spec.n_free - 2 * f.n_segments, 1)
+    dof = max(f.n_residual - fitted.n_free - 2 * f.n_segments, 1)
     return float(stats.f.sf(f.cost / dof, dof, nu))
 
 
@@ -234,34 +300,36 @@ def _columns(fn: EquationError, thetas: Float[Array, "B d"]) -> Float[Array, "B 
     return jax.vmap(fn)(thetas)
 
 
-def starts(base: Fitted, c: Candidate, band: NearRest, n_starts: int) -> list[dict[str, float]]:
-    """Up to ``n_starts`` grid points of ``c``'s nonlinear parameters, the best local maxima
-    of its equation-error score at the base optimum (module docstring); ``[{}]`` for a
-    candidate without nonlinear parameters."""
-    problem = base.problem
-    grid = c.grid(problem)
+def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[dict[str, float]]:
+    """Up to ``n_starts`` grid points of ``effect``'s nonlinear parameters, the best local
+    maxima of its equation-error score at ``current``'s optimum (module docstring); ``[{}]``
+    for a candidate without nonlinear parameters."""
+    sup, c = current.superset, candidate(effect)
+    grid = c.grid(sup.record)
     if not grid:
         return [{}]
-    ext = c.extend_problem(problem)
-    spec: ParamSpec = ext.spec
+    spec = sup.problem.spec
     names = list(spec.free_names)
-    lin = [q.name for q in c.linear_params(problem)]
+    lin = [q for q in sup.names[effect] if q not in grid]
     keys = list(grid)
     g = len(grid[keys[0]])
-    theta0 = spec.flatten({**base.fit.params, **{q: 0.0 for q in lin}})
-    rows = np.repeat(theta0[None, :], g * (1 + len(lin)), axis=0)
+    theta0 = current.theta
+    b = g * (1 + len(lin))
+    # batches padded to a power of two: a few compiled shapes serve every grid
+    rows = np.repeat(theta0[None, :], 1 << (b - 1).bit_length(), axis=0)
     for name in keys:
-        rows[:, names.index(name)] = np.tile(grid[name], 1 + len(lin))
+        rows[:b, names.index(name)] = np.tile(grid[name], 1 + len(lin))
     step = {q: 0.01 * (spec[q].upper - spec[q].lower) for q in lin}
     for j, q in enumerate(lin, 1):
         rows[j * g : (j + 1) * g, names.index(q)] = step[q]
-    r = np.asarray(_columns(ext.residual_fn, jnp.asarray(rows)))
+    r = np.asarray(_columns(sup.problem.residual_fn, jnp.asarray(rows)))[:b]
     keep = ~band.mask if band.mask.shape[0] == r.shape[1] else np.ones(r.shape[1], bool)
     r = r[:, keep]
-    r0 = r[:g]  # the base residual, the same at every grid point (term at its null)
+    r0 = r[:g]  # the current residual, the same at every grid point (term at its null)
     cols = np.stack([(r[j * g : (j + 1) * g] - r0) / step[q] for j, q in enumerate(lin, 1)], -1)
-    # the base's own columns, projected off: what the base absorbs is no score
-    jac = np.asarray(jax.jacfwd(problem.residual_fn)(jnp.asarray(base.theta)))[keep]
+    # the current model's own columns, projected off: what it absorbs is no score
+    own = [names.index(q) for q in current.problem.spec.free_names if q not in _pinned(current)]
+    jac = np.asarray(jax.jacfwd(sup.problem.residual_fn)(jnp.asarray(theta0)))[keep][:, own]
     qb, _ = np.linalg.qr(jac)
     res = r0[0] - qb @ (qb.T @ r0[0])
     cols = cols - np.einsum("nk,gkj->gnj", qb, np.einsum("nk,gnj->gkj", qb, cols))
@@ -287,16 +355,10 @@ def starts(base: Fitted, c: Candidate, band: NearRest, n_starts: int) -> list[di
     return out or [{}]
 
 
-def judge(
-    base: Fitted,
-    band: NearRest,
-    *,
-    settings: OutputErrorSettings,
-    nu: int,
-    n_starts: int,
-) -> list[CandidateFit]:
-    """Every applicable candidate of ``base``'s model fitted and judged (not yet decided:
-    :func:`fricjax.diagnose.run.diagnose` applies the rule)."""
-    cands = applicable(base.problem)
-    todo = [(c.effect, starts(base, c, band, n_starts)) for c in cands]
-    return fit_candidates(base, todo, settings, nu)
+def _pinned(fitted: Fitted) -> set[str]:
+    return {n for e, ns in fitted.superset.names.items() if e not in fitted.active for n in ns}
+
+
+def remaining(current: Fitted) -> list[str]:
+    """The superset's effects not yet in ``current``'s model."""
+    return [e for e in current.superset.effects if e not in current.active]

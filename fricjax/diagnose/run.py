@@ -40,12 +40,13 @@ from fricjax.diagnose.heldout import Check, SecondRecording, Split, Verdict
 from fricjax.diagnose.judge import (
     CandidateFit,
     Fitted,
-    applicable,
+    Superset,
     fit_base,
     fit_candidates,
     lack_of_fit_p,
     rebased,
     record_gains,
+    remaining,
     simulation_error,
     starts,
 )
@@ -333,16 +334,16 @@ def decide(
     steps: list[Step] = []
     current = base
     for _ in range(settings.max_terms):
-        cands = applicable(current.problem)
+        cands = remaining(current)
         if not cands:
             break
         todo = []
         with clock.stage("candidates", "ranking the candidates' starts"):
-            for c in cands:
+            for effect in cands:
                 if clock.over("candidates"):
-                    clock.untested("candidates", c.effect)
+                    clock.untested("candidates", effect)
                     continue
-                todo.append((c.effect, starts(current, c, band, settings.n_starts)))
+                todo.append((effect, starts(current, effect, band, settings.n_starts)))
         fits: list[CandidateFit] = []
         with clock.stage("candidates", "output-error fits of the candidates"):
             for effect, st in todo:
@@ -402,7 +403,7 @@ def diagnose(
         band = near_rest_band(problem, evidence.sigma_x)
         oe = settings.output_error(evidence)
         clock.note("base fit by output error")
-        base = fit_base(problem, problem.spec.as_dict(run.value), oe)
+        base = fit_base(Superset.build(problem), problem.spec.as_dict(run.value), oe)
     checks: list[Check] = [Split(settings.heldout, oe)]
     if validation is not None:
         checks.append(SecondRecording(_undecimated(validation), oe))
@@ -423,7 +424,7 @@ def diagnose(
             "lack_of_fit_p": lof,
             "position_rms_m": m.fit.position_rms,
             "simulation_rms_m": simulation_error(m),
-            "n_free": m.problem.spec.n_free,
+            "n_free": m.n_free,
         }
         for label, m, lof in (("before", base, lof_before), ("after", final, lof_after))
     }
@@ -518,7 +519,7 @@ def _unexplained(model: Fitted, p: float, nu: int) -> dict[str, Any]:
     per = np.bincount(seg, weights=r**2) / np.bincount(seg)
     s = int(np.argmax(per))
     idx = np.flatnonzero(seg == s)
-    dof = max(f.n_residual - pb.spec.n_free - 2 * f.n_segments, 1)
+    dof = max(f.n_residual - model.n_free - 2 * f.n_segments, 1)
     excess = float(f.cost - dof)
     return {
         "effect": "unexplained",
@@ -567,11 +568,11 @@ def _write_models(diag: Diagnosis, path: Path) -> Path:
         f.attrs["format"] = "fricjax-diagnosis-models-v1"
         f.attrs["recording"] = diag.recording
         for label, m in (("base", diag.base), ("final", diag.final)):
-            model, spec = m.problem.model, m.problem.spec
+            model, spec, theta = m.reduced()
             g = f.create_group(label)
             g.attrs["model"] = model.name
             g.attrs["terms"] = json.dumps([t.name for t in model.terms])
-            named = spec.as_dict(m.theta)
+            named = spec.as_dict(theta)
             g["names"] = np.array(list(named), dtype=h5py.string_dtype())
             g["values"] = np.array(list(named.values()), dtype=np.float64)
             g["free"] = np.array([spec[n].free for n in named], dtype=bool)

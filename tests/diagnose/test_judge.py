@@ -16,7 +16,7 @@ import fricjax.diagnose.catalogue as cat
 from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.evidence import near_rest_band, record_noise
-from fricjax.diagnose.judge import Fitted, _judge_numbers, f_pvalue, starts
+from fricjax.diagnose.judge import Fitted, Superset, _judge_numbers, f_pvalue, starts
 from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
 from fricjax.identify import IdentifySettings
 from fricjax.problem import build_problem
@@ -58,16 +58,17 @@ def test_the_ranking_starts_a_hidden_harmonic_at_its_frequency(paper_config: Con
         duration=0.5, seed=3, model=PAPER_MODEL.with_terms([cat.ExtraHarmonic()]), truth=truth
     )
     pb = build_problem(rec, paper_config)
-    base = Fitted(pb, SimpleNamespace(params=dict(pb.spec.as_dict(pb.theta(PAPER_TRUTH)))))
+    sup = Superset.build(pb)
+    truth = {**sup.problem.spec.as_dict(), **pb.spec.as_dict(pb.theta(PAPER_TRUTH))}
+    base = Fitted(sup, (), SimpleNamespace(params=truth))  # type: ignore[arg-type]
     band = near_rest_band(pb, record_noise(pb).sigma_x)
-    c = cat.candidate("extra_harmonic")
-    got = starts(base, c, band, 2)
-    axis = c.grid(pb)["harm_f"]
+    got = starts(base, "extra_harmonic", band, 2)
+    axis = cat.candidate("extra_harmonic").grid(pb)["harm_f"]
     step = float(axis[1] - axis[0])
     assert len(got) == 2
     assert abs(got[0]["harm_f"] - f_true) <= step
     # a candidate without nonlinear parameters starts once, at the base
-    assert starts(base, cat.candidate("quadratic_drag"), band, 2) == [{}]
+    assert starts(base, "quadratic_drag", band, 2) == [{}]
 
 
 @pytest.fixture(scope="module")
