@@ -117,3 +117,22 @@ def test_the_same_plant_without_it_gets_no_finding(stribeck_diagnoses) -> None:
     diag = stribeck_diagnoses["null"]
     assert diag.findings == []
     assert diag.fit["before"]["lack_of_fit_p"] > 0.01
+
+
+def test_the_superset_with_every_term_pinned_is_the_base_model(twin_problem) -> None:
+    # one compiled program serves every candidate only if the pinned terms add no force:
+    # at their nulls the superset's residual is the base's, to rounding
+    sup = Superset.build(twin_problem)
+    assert "presliding_hysteresis" not in sup.effects and "stribeck" in sup.effects
+    theta = twin_problem.theta(PAPER_TRUTH)
+    full = sup.problem.spec.flatten(
+        {**sup.problem.spec.as_dict(), **twin_problem.spec.as_dict(theta)}
+    )
+    base_r = twin_problem.residual(theta)
+    np.testing.assert_allclose(sup.model(()).residual(full), base_r, rtol=0, atol=1e-9)
+    pinned = sup.model(("stribeck",)).spec
+    assert pinned["stribeck_A"].upper - pinned["stribeck_A"].lower > 1.0  # free to fit
+    width = pinned["harm_A"].upper - pinned["harm_A"].lower
+    assert width < 1e-8 * (sup.problem.spec["harm_A"].upper - sup.problem.spec["harm_A"].lower)
+    assert sup.n_free(()) == twin_problem.spec.n_free
+    assert sup.n_free(("stribeck",)) == twin_problem.spec.n_free + 2
