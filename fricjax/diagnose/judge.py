@@ -66,6 +66,10 @@ __all__ = [
 ]
 
 
+# width of a pinned parameter's box where its own spacing is smaller (Superset docstring)
+_PIN = 1e-100
+
+
 @dataclass(frozen=True)
 class Superset:
     """The base model with every simulable, applicable candidate's term appended: ONE model,
@@ -73,11 +77,15 @@ class Superset:
     every step and every held-out fit of a record of that length.
 
     A model "base + active terms" is this superset with every other term *pinned*: its
-    parameters' box collapsed to ``±1e-9`` of its search range around its null (amplitudes
-    0, shape parameters at their grid's middle), where its force is zero to within 1e-9 of
-    its range. The box is not part of the compiled program (``ParamSpec.structural``), the
-    free/fixed pattern is, so pinning this way costs no compilation; a pinned parameter's
-    Jacobian column vanishes and Levenberg–Marquardt's damping leaves it where it is.
+    parameters' box collapsed to ``[null, null + max(4 ulp, 1e-100)]`` (amplitudes at 0,
+    shape parameters at their grid's middle), where its force is zero to within 1e-100 of
+    an amplitude. The box is not part of the compiled program (``ParamSpec.structural``),
+    the free/fixed pattern is, so pinning this way costs no compilation. A pinned
+    parameter's Jacobian column is then ~1e-100 of a free one's (a shape parameter's is
+    proportional to its amplitude, itself pinned at 0): Levenberg–Marquardt's damped step
+    along it is nil, so it neither moves nor keeps the solver from meeting its tolerance
+    (a box 1e-9 of the range wide left columns large enough for the damped step to wander
+    along them to the step limit).
 
     Attributes:
         record: the record with the base model.
@@ -112,8 +120,8 @@ class Superset:
         params = []
         for q in spec.params:
             if q.name in pinned and q.free:
-                half = 1e-9 * (q.upper - q.lower)
-                q = replace(q, lower=q.init - half, upper=q.init + half)
+                up = q.init + max(4.0 * float(np.spacing(q.init)), _PIN)
+                q = replace(q, lower=q.init, upper=up)
             params.append(q)
         return replace(self.problem, spec=replace(spec, params=tuple(params)))
 

@@ -104,7 +104,7 @@ class DiagnoseSettings:
     n_starts: int = 2
     heldout: float = 0.3
     segment_s: float = 0.05
-    max_steps: int = 200
+    max_steps: int = 100
     time_limit: float = 180.0
     stage_limits: dict[str, float] = field(default_factory=lambda: dict(STAGE_LIMITS))
 
