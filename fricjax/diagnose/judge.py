@@ -31,7 +31,9 @@ ranking is right; the second local maximum guards against a ranking bent by the
 equation error's preprocessing bias. Every start costs one output-error fit, so the count
 is kept at two.
 
-All output-error fits of the candidates go through :func:`fit_candidates`.
+One model. Base and candidates are all the same :class:`Superset` model, the terms not
+under test pinned, so one compiled output-error program serves every fit of a record; all
+the candidates' output-error fits go through :func:`fit_candidates`.
 """
 
 from __future__ import annotations
