@@ -31,11 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.diagnose.judge import Fitted
+from fricjax.diagnose.judge import Fitted, converged
 from fricjax.output_error import (
     OutputError,
     OutputErrorSettings,
-    fit_output_error,
     output_error_residual,
 )
 from fricjax.problem import Problem
@@ -185,7 +184,7 @@ class Split:
             costs = []
             for m in (before, after):
                 train = record_part(m.problem, a, b)
-                fit = fit_output_error(train, dict(m.fit.params), self.settings)
+                fit = converged(train, m.fit.params, self.settings)
                 costs.append(fixed_cost(record_part(m.problem, c, d), fit.params, self.settings))
             return Verdict("split", on, True, 1 - costs[1] / costs[0], costs[0], costs[1])
         return Verdict(

@@ -196,10 +196,40 @@ class CandidateFit:
         return self.p_value < limit and self.delta_bic > min_delta_bic
 
 
+# A fit is run again from its end while its cost still falls by more than this [σ_x²]: the
+# judge's thresholds are tens of σ_x² (ΔBIC > 10 beyond k·ln n), so a fit this close to its
+# minimum cannot move a decision, and a descent cut short cannot pass for a term's gain.
+CONVERGED = 0.5
+# most restarts of one fit (each at most ``max_steps`` Levenberg–Marquardt steps)
+MAX_ROUNDS = 8
+
+
+def converged(
+    problem: Problem,
+    start: Mapping[str, float],
+    settings: OutputErrorSettings,
+    states: tuple[np.ndarray, np.ndarray] | None = None,
+    fit: OutputErrorFit | None = None,
+) -> OutputErrorFit:
+    """:func:`~fricjax.output_error.fit_output_error` from ``start`` (or continued from
+    ``fit``), restarted from its end until its cost falls by less than :data:`CONVERGED`:
+    Levenberg–Marquardt on output error often meets no tolerance within ``max_steps``."""
+    fit = fit or fit_output_error(problem, dict(start), settings, states)
+    for _ in range(MAX_ROUNDS - 1):
+        if fit.success:
+            break
+        again = fit_output_error(problem, dict(fit.params), settings, (fit.states_x, fit.states_v))
+        done = fit.cost - again.cost < CONVERGED
+        fit = again if again.cost < fit.cost else fit
+        if done:
+            break
+    return fit
+
+
 def fit_base(sup: Superset, start: Mapping[str, float], settings: OutputErrorSettings) -> Fitted:
-    """The base model fitted by output error from ``start`` (named values)."""
+    """The base model fitted by output error from ``start`` (named values), to convergence."""
     full = {**sup.problem.spec.as_dict(), **dict(start)}
-    return Fitted(sup, (), fit_output_error(sup.model(()), full, settings))
+    return Fitted(sup, (), converged(sup.model(()), full, settings))
 
 
 def f_pvalue(lr: Float[np.ndarray, "..."], k: int, nu: int) -> Float[np.ndarray, "..."]:
@@ -235,12 +265,14 @@ def fit_candidates(
     for effect, nl_starts in candidates:
         active = (*base.active, effect)
         pb = sup.model(active)
-        best: Fitted | None = None
+        # every start gets one round; the best is then run to convergence
+        best: OutputErrorFit | None = None
         for nl in nl_starts or ({},):
             fit = fit_output_error(pb, {**base.fit.params, **nl}, settings, states)
-            if best is None or fit.cost < best.fit.cost:
-                best = Fitted(sup, active, fit)
+            if best is None or fit.cost < best.cost:
+                best = fit
         assert best is not None
+        best = Fitted(sup, active, converged(pb, {}, settings, fit=best))
         k = best.n_free - base.n_free
         lr, p, dbic = _judge_numbers(base.cost, best.fit, k, n, nu)
         own = {q: float(best.fit.params[q]) for q in sup.names[effect]}
@@ -253,7 +285,7 @@ def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> Candida
     candidate's fit ended (module docstring)."""
     end = cf.fitted.fit
     start = {**end.params, **{q: cf.base.fit.params[q] for q in cf.base.superset.names[cf.effect]}}
-    fit = fit_output_error(cf.base.problem, start, settings, (end.states_x, end.states_v))
+    fit = converged(cf.base.problem, start, settings, (end.states_x, end.states_v))
     if fit.cost >= cf.base.cost:
         return cf
     base = Fitted(cf.base.superset, cf.base.active, fit)
