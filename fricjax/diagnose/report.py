@@ -46,6 +46,11 @@ def length(x: float) -> str:
     return f"{1e6 * x:.3g} µm"
 
 
+def _pct(gain: float) -> str:
+    """A relative gain in per cent, or "not computed"."""
+    return f"{100 * gain:+.1f} %" if math.isfinite(gain) else "not computed"
+
+
 def where_text(location: Mapping[str, Any]) -> str:
     """A finding's location in words with units."""
     parts = []
@@ -186,8 +191,8 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
             blocks.append(
                 Para(
                     f"ΔBIC {f['delta_bic']:.1f}, p = {f['p_value']:.2g}; record EMS "
-                    f"{100 * f['record_ems_gain']:+.1f} %, simulation error "
-                    f"{100 * f['record_simulation_gain']:+.1f} % better; held out: {held}."
+                    f"{_pct(f['record_ems_gain'])}, simulation error "
+                    f"{_pct(f['record_simulation_gain'])} better; held out: {held}."
                 )
             )
     return blocks
