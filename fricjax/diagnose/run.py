@@ -88,7 +88,8 @@ class DiagnoseSettings:
         the plant's values, stays within the noise of its own start (LM then works on a
         nearly quadratic cost), long enough (50 samples at 1 kHz) that each segment carries
         the dynamics the parameters must explain (the seed's time constant m/Fv ≈ 12 ms).
-    max_steps: Levenberg–Marquardt steps of each output-error fit.
+    max_steps: Levenberg–Marquardt steps of each round of an output-error fit (a fit is
+        restarted until its cost falls by less than ``judge.CONVERGED``).
     time_limit: seconds for the whole diagnosis; stage_limits: seconds per stage
         (``[diagnose.stage_limits]``, keys of :data:`~fricjax.diagnose.stages.LIMITED`).
         A limit acts between units of work (one candidate's fits, one held-out check); what
