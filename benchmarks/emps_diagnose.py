@@ -127,26 +127,25 @@ def main() -> int:
             )
         t_diag = time.perf_counter() - t0
 
-    sel = diag.selection
     t0 = time.perf_counter()
     rows: list[tuple[str, dict[str, float], dict[str, float]]] = []
     # published symmetric values, then fricjax's base and each accepted step, refitted
     rows.append(("published symmetric (paper values)", E.full(E.PUBLISHED), {}))
-    base = _refit(cfg, recs["estimation"], diag.problem.model, diag.base_spec, sel.base_theta)
+    base = _refit(cfg, recs["estimation"], *diag.base.reduced())
     rows.append(("fricjax base (published model, refitted)", base, {}))
     models = [("base", cfg)]
     added: list[str] = []
-    for step in sel.steps:
+    for step in diag.steps:
         if step.chosen is None:
             continue
-        added.append(step.chosen.effect)
-        c = step.chosen
-        extra = {"model": c.model, "spec": c.spec}
+        added.append(step.chosen.fit.effect)
+        model, spec, theta = step.chosen.fit.fitted.reduced()
+        extra = {"model": model, "spec": spec}
         label = " + ".join(["base", *added])
-        rows.append((f"{label} (diagnosis' fit)", c.spec.as_dict(c.theta), extra))
-        fit = _refit(cfg, recs["estimation"], c.model, c.spec, c.theta)
+        rows.append((f"{label} (diagnosis' fit)", spec.as_dict(theta), extra))
+        fit = _refit(cfg, recs["estimation"], model, spec, theta)
         rows.append((label, fit, extra))
-        models.append((" + ".join(added), _config_for(cfg, c.model, c.spec)))
+        models.append((" + ".join(added), _config_for(cfg, model, spec)))
     errors = []
     for label, params, extra in rows:
         mcfg = cfg if not extra else _config_for(cfg, extra["model"], extra["spec"])
@@ -205,11 +204,9 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
         f"is hinted. Diagnosis wall time {t_diag:.0f} s (24.8 s record, 24 743 samples), "
         f"evaluation below {t_eval:.0f} s.",
         "",
-        "Noise model: with a recorded drive input the residual's noise is not the encoder's "
-        "alone (vir carries the loop's feedback of it and its own ripple), so the diagnosis "
-        'whitens by the residual\'s own smoothed spectrum (`[diagnose] noise = "auto"` -> '
-        "`spectral`, `fricjax.diagnose.whiten.noise_spectrum`); the IDIM decimation of the "
-        "config is not applied inside the diagnosis (the whitener selects the band itself).",
+        "The diagnosis judges by output error (the simulated position against the recorded "
+        "one, in units of the encoder's own noise, docs/diagnosis.md); the IDIM decimation of "
+        "the config is not applied inside it.",
         "",
         "## Findings, in the order forward selection accepted them",
         "",
@@ -233,7 +230,7 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
         "3.11 % estimation for the asymmetric one), and the 1 kHz EMS [N²]. fricjax rows: "
         "fitted on DATA_EMPS only, by the published criterion (least squares on the "
         'decimated residual), or as the diagnosis fitted them ("diagnosis\' fit": '
-        "least squares in its whitened space, 1 kHz); DATA_EMPS_PULSES is never fitted.",
+        "output error, 1 kHz); DATA_EMPS_PULSES is never fitted.",
         "",
         "| model | rel. error, estimation | rel. error, validation | EMS estimation [N²] | "
         "EMS validation [N²] |",
@@ -256,37 +253,32 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
             f"({100 * (1 - last['validation_rel'] / pub['validation_rel']):.1f} % lower), "
             f"EMS {pub['validation_ems']:.2f} -> {last['validation_ems']:.2f} N².",
         ]
-    held = diag.heldout
-    if held:
-        lines += [
-            "",
-            f"The diagnosis' own held-out check (its whitened-GLS fits on the estimation file, "
-            f"on the {held['on']}): 1 kHz EMS {held['ems_before']:.2f} -> "
-            f"{held['ems_after']:.2f} N² ({100 * held['ems_improvement']:+.1f} %); spectrally "
-            f"whitened RSS over {held['dof']} dimensions {held['rss_w_before']:.4g} -> "
-            f"{held['rss_w_after']:.4g} ({100 * held['rss_w_improvement']:+.1f} %). The "
-            f"{held['metric']} decides (force noise; the spectral whitener is the base "
-            "residual's own spectrum on the pulse file and counts the base's misfit as noise).",
-        ]
-    gains = [f for f in diag.findings if "heldout_improvement" in f]
+    gains = [f for f in diag.findings if f["effect"] != "unexplained"]
     if gains:
         lines += [
             "",
-            "Each finding's own held-out gain (EMS on the pulse file, model with the "
-            "term against the model before it, both fitted on DATA_EMPS by the diagnosis):",
+            "Each finding's held-out verdicts (output error on the pulse file and on the "
+            "record's own split, the model with the term against the model before it):",
             "",
-            "| finding | held-out gain | verdict |",
-            "|---|---|---|",
+            "| finding | held-out gains |",
+            "|---|---|",
             *(
-                f"| {f['effect']} | {100 * f['heldout_improvement']:+.1f} % | "
-                f"{'confirmed' if f.get('heldout_confirmed') else 'not confirmed'} |"
+                f"| {f['effect']} | "
+                + "; ".join(
+                    f"{v['on']}: {100 * v['gain']:+.1f} %"
+                    if v["judged"]
+                    else f"{v['check']}: not judged"
+                    for v in f["heldout"]
+                )
+                + " |"
                 for f in gains
             ),
         ]
     asym_row = [e for lab, _, e in errors if lab.startswith("authors'")]
     if final and asym_row:
-        kept = [f["effect"] for f in gains if f.get("heldout_confirmed")]
-        dropped = [f["effect"] for f in gains if not f.get("heldout_confirmed")]
+        refused = [f for f in diag.findings if "rejected_candidate" in f]
+        kept = [f["effect"] for f in gains]
+        dropped = [f["rejected_candidate"]["effect"] for f in refused]
         lines += [
             "",
             f"Validation file: diagnosed model {final[-1]['validation_rel']:.3f} %, authors' "

@@ -570,8 +570,8 @@ def diagnose(
         typer.echo(f"  {f['explanation']}")
     before, after = diag.fit["before"], diag.fit["after"]
     typer.echo(
-        f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; "
-        f"BIC {fmt(before['bic'], 6)} -> {fmt(after['bic'], 6)}"
+        f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; output error "
+        f"{fmt(before['output_error_cost'], 6)} -> {fmt(after['output_error_cost'], 6)} sigma_x^2"
     )
     for item in diag.clock.summary()["skipped"]:
         typer.echo(f"time limit at {item['stage']}: {item['what']}")

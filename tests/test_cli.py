@@ -173,7 +173,7 @@ def test_diagnosis_progress_shows_each_stage_on_a_terminal_and_nothing_elsewhere
     with _stage_progress(False, tty) as on_stage:
         assert on_stage is not None
         on_stage(StageEvent("base_fit", "base fit: search and refine", 0.0))
-        on_stage(StageEvent("scores", "step 1: score test of impact (1/14)", 12.5))
+        on_stage(StageEvent("candidates", "output-error fit of impact", 12.5))
     # the finished stage is printed with the time the next one began
     from rich.text import Text
 

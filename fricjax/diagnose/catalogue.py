@@ -6,11 +6,11 @@ reports when nothing here fits) is one :class:`Candidate`. A candidate is either
 the parameter specification. Its parameters split in two:
 
 * **linear** amplitudes ``β`` (null value 0, ``Param.null = 0.0``) at which the added force is
-  exactly zero, so ``base ⊂ base + term`` (nested models). The score regressors of the
-  diagnosis are the columns ``∂r/∂β`` at ``β = 0`` (``jax.jacfwd``), ``r = m·a − F*`` [N];
+  exactly zero, so ``base ⊂ base + term`` (nested models): the judge's likelihood ratio
+  compares nested fits;
 * **nonlinear** shape parameters ``θ`` (a location, a width, a frequency, a presliding
   distance, ...) scanned over :meth:`Candidate.grid`, built from the recording's ranges
-  (:func:`ranges`), then refined together with ``β`` by Levenberg–Marquardt.
+  (:func:`ranges`), whose best points start the output-error fit of ``β`` and ``θ``.
 
 Force expressions (``v``, ``x``, ``t`` from the :class:`~fricjax.model.term.Signals`,
 ``sgn(0) = 0``; "friction" terms give the resisting force ``F_f``, subtracted, "drive" terms a
@@ -99,7 +99,8 @@ __all__ = [
 AMPLITUDE_FACTOR = 2.0
 # mass_error frees the mass within ± this fraction of the given value.
 MASS_FRACTION = 0.3
-# A scan costs one whitened, projected column set per grid point; 400 keeps it cheap.
+# A scan ranks every grid point by one equation-error residual per amplitude; 400 keeps
+# it cheap.
 MAX_GRID = 400
 # Fixed grid sizes (documented in each candidate).
 N_VST = 32
@@ -565,29 +566,19 @@ def _g(value: float) -> str:
 class Candidate:
     """One catalogue effect: a term appended to the base model (or a spec change).
 
-    ``local = True`` marks a candidate whose "linear" parameter is really nonlinear with an
-    interior null (``stribeck_shape``): the score column ``∂r/∂β|₀`` is then a local
-    (first-order) regressor; everything else treats it as linear.
-
-    ``by_refit = True`` marks a change of the friction law itself (Stribeck drop and shape,
-    direction asymmetry, quadratic drag, presliding lag): the base's own nonlinear friction
-    parameters (Fs, vs, Fc, Fv) bend towards it, so at the base optimum its one-step score
-    sees little of what a refit recovers, and forward selection tests it by the likelihood
-    ratio of a refit instead (:func:`fricjax.diagnose.select.forward_select`).
-
-    ``by_simulation = True``: a friction law that the output-error test
-    (:mod:`fricjax.diagnose.simulation_test`) offers where equation error names nothing: a
-    pointwise force the simulator integrates, acting at stops and breakaways, which
-    equation error holds by the stick/slip rule (not a stateful presliding lag; not the
-    Stribeck shape exponent, whose output-error signature is a Stribeck drop's).
+    The judge (:mod:`fricjax.diagnose.judge`) tests every entry whose force is pointwise
+    (:attr:`simulable`) by output error; its nonlinear parameters start at points of
+    :meth:`grid`.
     """
 
     effect: str = ""
-    local: ClassVar[bool] = False
-    by_refit: ClassVar[bool] = False
-    by_simulation: ClassVar[bool] = False
 
     # structure ----------------------------------------------------------------------------
+    @property
+    def simulable(self) -> bool:
+        """Whether the simulator integrates this effect's force (no bristle state)."""
+        return True
+
     def term(self, problem: Problem) -> Term | None:
         """The term this effect appends (``None`` for a pure spec change)."""
         raise NotImplementedError
@@ -695,8 +686,6 @@ class StribeckCandidate(_TermCandidate):
     """
 
     effect: str = "stribeck"
-    by_refit: ClassVar[bool] = True
-    by_simulation: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = GaussianStribeck
 
@@ -735,8 +724,6 @@ class StribeckShapeCandidate(_TermCandidate):
     """
 
     effect: str = "stribeck_shape"
-    by_refit: ClassVar[bool] = True
-    local: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = StribeckShape
 
@@ -775,8 +762,6 @@ class AsymmetricCandidate(_TermCandidate):
     """
 
     effect: str = "asymmetric_friction"
-    by_refit: ClassVar[bool] = True
-    by_simulation: ClassVar[bool] = True
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = AsymmetricFriction
 
@@ -811,8 +796,6 @@ class QuadraticDragCandidate(_TermCandidate):
     """``quadratic_drag``: :class:`QuadraticDrag`. Bounds Cd ∈ ±2·F_ref/max|v|²; G = 1."""
 
     effect: str = "quadratic_drag"
-    by_refit: ClassVar[bool] = True
-    by_simulation: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = QuadraticDrag
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
@@ -843,14 +826,11 @@ class PreslidingCandidate(_TermCandidate):
     effect: str = "presliding_hysteresis"
     needs_friction: ClassVar[bool] = True
     term_class: ClassVar[type[Term]] = PreslidingHysteresis
-    # A lag after each reversal is a change of the friction law where the plant slows and
-    # turns, which the base's Stribeck parameters bend towards as they do for a Stribeck
-    # drop. Concealed benchmark (session 12, 1 and 2 s records): the score at the base
-    # optimum saw 1.2 (p = 0.75) and 10.4 of two presliding lags at c = 10, which the
-    # refit's likelihood ratio puts at 25.9 and 61.6 (p < 5e-4), and both are then named
-    # (they were unexplained, and quadratic drag); on the 24 null records of those lengths
-    # the ratio's calibrated p ranged 0.0125-0.77 and nothing was named.
-    by_refit: ClassVar[bool] = True
+
+    @property
+    def simulable(self) -> bool:
+        """The bristle state ``z`` is integrated by no simulator of fricjax yet."""
+        return False
 
     def linear_params(self, problem: Problem) -> tuple[Param, ...]:
         return (_amplitude("presl_A", "N", AMPLITUDE_FACTOR * force_scale(problem)),)
@@ -1225,11 +1205,6 @@ CATALOGUE: tuple[Candidate, ...] = (
     FrictionDriftCandidate(),
     MassErrorCandidate(),
 )
-
-
-def simulation_candidates() -> tuple[str, ...]:
-    """The effects the output-error test offers: the entries marked ``by_simulation``."""
-    return tuple(c.effect for c in CATALOGUE if c.by_simulation)
 
 
 def candidate(effect: str) -> Candidate:

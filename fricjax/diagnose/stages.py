@@ -1,16 +1,14 @@
 """The diagnosis as named stages: their wall time, live progress events and hard time limits.
 
 A :class:`Clock` is handed down the diagnosis (:func:`~fricjax.diagnose.run.diagnose`,
-:func:`~fricjax.diagnose.select.forward_select`,
-:func:`~fricjax.diagnose.simulation_test.simulation_test`). Each stage is entered with
+:func:`~fricjax.diagnose.run.decide`). Each stage is entered with
 :meth:`Clock.stage` (time charged to the innermost open stage, so nested stages are not
 counted twice); work that a limit may cut asks :meth:`Clock.over` first and, when the
 answer is yes, records what it leaves out with :meth:`Clock.skip`. A limit acts only
 when hit: below every limit the diagnosis runs exactly as without a clock.
 
-A limit is checked between units of work (one candidate's score test with its Monte
-Carlo calibration, one refit, one held-out check, one output-error fit, one map), so a
-stage overruns its limit by at most one unit.
+A limit is checked between units of work (one candidate's output-error fits, one
+candidate's held-out checks), so a stage overruns its limit by at most one unit.
 """
 
 from __future__ import annotations
@@ -24,17 +22,13 @@ from typing import Any
 
 # name: what the stage does (the progress display and the report's timing table)
 STAGES: dict[str, str] = {
-    "base_fit": "base fit (search and refine the base model)",
-    "whitening": "noise model, whitening, GLS fit of the base",
-    "scores": "score tests of the candidates with their Monte Carlo calibration",
-    "refits": "refits of the candidates that score",
-    "heldout": "held-out checks (split, second recording, cross-validation)",
-    "locate": "residual maps with their Monte Carlo calibration",
-    "simulation_test": "simulation (output-error) test of the friction laws",
+    "base_fit": "base fit (identify, then output error from its estimate)",
+    "candidates": "every candidate's starts and output-error fits",
+    "heldout": "record gains and held-out checks of the candidates that pass",
     "report": "report, plots and models file",
 }
 # the stages whose work a limit can cut (the others are a single step the diagnosis needs)
-LIMITED = ("base_fit", "scores", "refits", "heldout", "locate", "simulation_test")
+LIMITED = ("candidates", "heldout")
 
 
 @dataclass(frozen=True)

@@ -34,50 +34,50 @@ def test_time_is_charged_to_the_innermost_stage_and_sums_to_the_total() -> None:
     now = Ticks()
     events: list[StageEvent] = []
     clock = Clock(on_stage=events.append, now=now)
-    with clock.stage("scores"):
+    with clock.stage("candidates"):
         now.t += 2.0
-        with clock.stage("refits", "refit of impact"):
+        with clock.stage("heldout", "held-out check of impact"):
             now.t += 3.0
         now.t += 1.5
     now.t += 0.25  # between stages: charged to none
     t = clock.summary()
-    assert t["stages_s"] == {"scores": 3.5, "refits": 3.0}
+    assert t["stages_s"] == {"candidates": 3.5, "heldout": 3.0}
     assert t["total_s"] == pytest.approx(6.75)
     assert [(e.stage, e.detail, e.elapsed_s) for e in events] == [
-        ("scores", STAGES["scores"], 0.0),
-        ("refits", "refit of impact", 2.0),
+        ("candidates", STAGES["candidates"], 0.0),
+        ("heldout", "held-out check of impact", 2.0),
     ]
 
 
 def test_a_limit_acts_only_once_its_stage_or_the_total_has_run_past_it() -> None:
     now = Ticks()
-    clock = Clock(limits={"refits": 4.0}, total=10.0, now=now)
-    with clock.stage("refits"):
+    clock = Clock(limits={"heldout": 4.0}, total=10.0, now=now)
+    with clock.stage("heldout"):
         now.t += 4.0
-        assert not clock.over("refits")  # at the limit, not past it
+        assert not clock.over("heldout")  # at the limit, not past it
         now.t += 0.5
-        assert clock.hit("refits") == "refits"
-        assert not clock.over("scores")  # another stage keeps its own time
-        clock.untested("refits", "impact")
+        assert clock.hit("heldout") == "heldout"
+        assert not clock.over("candidates")  # another stage keeps its own time
+        clock.untested("heldout", "impact")
     now.t += 6.0
-    assert clock.hit("scores") == "total"
-    clock.untested("scores", "impact")
-    clock.untested("scores", "stribeck")
+    assert clock.hit("candidates") == "total"
+    clock.untested("candidates", "impact")
+    clock.untested("candidates", "stribeck")
     assert clock.not_tested() == ["impact", "stribeck"]
     skipped = clock.summary()["skipped"]
     assert [(s["stage"], s["limit"], s["at_s"]) for s in skipped] == [
-        ("refits", "refits", 4.5),
-        ("scores", "total", 10.5),
-        ("scores", "total", 10.5),
+        ("heldout", "heldout", 4.5),
+        ("candidates", "total", 10.5),
+        ("candidates", "total", 10.5),
     ]
     assert skipped[0]["what"] == "impact: not tested (time limit)"
 
 
 def test_time_limits_from_the_config_table() -> None:
-    s = DiagnoseSettings.from_dict({"time_limit": 120, "stage_limits": {"scores": 30}})
+    s = DiagnoseSettings.from_dict({"time_limit": 120, "stage_limits": {"candidates": 30}})
     assert s.time_limit == 120.0
     # a table sets the stages it names; the others keep their defaults
-    assert s.stage_limits == {**STAGE_LIMITS, "scores": 30}
+    assert s.stage_limits == {**STAGE_LIMITS, "candidates": 30}
     assert set(STAGE_LIMITS) == set(LIMITED)
     assert DiagnoseSettings.from_dict({"time_limit": math.inf}).clock().total == math.inf
     with pytest.raises(FricjaxError, match=r"\[diagnose\]\.stage_limits: must be a table"):
@@ -90,10 +90,9 @@ def test_time_limits_from_the_config_table() -> None:
 def test_a_tiny_budget_on_the_twin_lists_every_candidate_it_left_untested(
     tmp_path: Path,
 ) -> None:
-    """With a budget spent before the first score test, the base fit and its maps still run
-    and every catalogue candidate is listed as not tested, none named; the maps after the
-    findings are skipped and said so in diagnosis.json and the report. Slow: the base fit,
-    its GLS fit and the maps compile (~20 s of CPU), which no limit cuts."""
+    """With a budget spent before the first candidate, the base fit still runs and every
+    simulable catalogue candidate is listed as not tested, none named, and the report says
+    the diagnosis is incomplete. Slow: the base's output-error fit compiles (~40 s)."""
     _, cfg, problem = load(ROOT / "data" / "paper_twin.h5", ROOT / "configs" / "paper.toml")
     ident = IdentifySettings.from_tables(cfg.tables, source=cfg.source)
     ident = replace(ident, chains=8, anneal=replace(ident.anneal, max_levels=5), fast_compile=True)
@@ -101,21 +100,17 @@ def test_a_tiny_budget_on_the_twin_lists_every_candidate_it_left_untested(
     diag = diagnose(
         problem,
         identify_settings=ident,
-        settings=DiagnoseSettings(n_mc=50, time_limit=1e-6),
+        settings=DiagnoseSettings(time_limit=1e-6),
         on_stage=events.append,
     )
     paths = write_diagnosis(diag, tmp_path)
     doc = json.loads(paths["json"].read_text())
-    applicable = [c.effect for c in CATALOGUE if c.applicable(problem.model, problem.spec)]
+    applicable = [
+        c.effect for c in CATALOGUE if c.simulable and c.applicable(problem.model, problem.spec)
+    ]
     assert doc["not_tested"] == applicable and len(applicable) >= 8
     assert [f for f in doc["findings"] if f["effect"] != "unexplained"] == []
-    skipped = {(s["stage"], s["limit"]) for s in doc["timing"]["skipped"]}
-    assert ("scores", "total") in skipped and ("locate", "total") in skipped
-    assert doc["locate_after_skipped"] == "time limit"
-    assert diag.selection.steps == []  # nothing scored, so no step
-    assert set(doc["timing"]["stages_s"]) >= {"base_fit", "whitening", "locate", "report"}
-    assert {e.stage for e in events} >= {"base_fit", "whitening", "scores", "locate", "report"}
+    assert ("candidates", "total") in {(s["stage"], s["limit"]) for s in doc["timing"]["skipped"]}
+    assert {e.stage for e in events} >= {"base_fit", "candidates", "report"}
     report = paths["report"].read_text()
-    assert "**Not tested (time limit)**: " + ", ".join(applicable) in report
     assert "**Time limit hit**" in report
-    assert "Nothing is missing" not in report  # what was not tested cannot be ruled out

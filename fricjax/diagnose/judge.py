@@ -1,0 +1,406 @@
+"""The one judge of the diagnosis: every candidate refitted by output error.
+
+Metric. Base and base + candidate are fitted by output error with multiple shooting
+(:func:`fricjax.output_error.fit_output_error`) with the residual in units of the record's own
+displacement noise σ̂_x (:func:`fricjax.diagnose.evidence.record_noise`), so the cost
+``E = Σ r_aug²`` is a sum of squares of N(0, 1) variables where the model is right. Output
+error compares the simulated position with the recorded one: no velocity or acceleration is
+differentiated from x, so what happens near rest (stops, breakaways) is judged like the rest
+of the motion, and no band of samples is left out.
+
+Statistic. With k the candidate's free parameters, n the samples and ν the degrees of freedom
+of σ̂_x² (:attr:`~fricjax.diagnose.evidence.Evidence.nu`), for nested models (the term is
+exactly zero at its amplitudes' null):
+
+    LR = E_base − E_cand                                                [σ_x²]
+    p  = P(F(k, ν) > LR/k)          (σ̂_x² itself carries ν degrees of freedom)
+    ΔBIC = LR − k·ln n              (BIC of a known variance)
+
+``E_base`` is the lower of the base's own fit and the base refitted from where the
+candidate's fit ended: LM may stop short of the base's minimum, and a longer descent must not
+pass for the term's gain.
+
+Starts. Each candidate starts from the base's optimum with its amplitudes at their null and
+its nonlinear parameters (a place, a width, a frequency) at ``n_starts`` points of the
+catalogue's grid: the best local maxima of a cheap ranking, the equation-error score of the
+candidate's force columns against the base's equation-error residual (projected off the
+base's own columns; samples near rest left out, where the sign of the filtered velocity is
+noise). The grids are spaced so that no peak lies between two points (catalogue), and LM
+started within a grid cell of a peak converges to it, so the best point is enough when the
+ranking is right; the second local maximum guards against a ranking bent by the
+equation error's preprocessing bias. Every start costs one output-error fit, so the count
+is kept at two.
+
+One model. Base and candidates are all the same :class:`Superset` model, the terms not
+under test pinned, so one compiled output-error program serves every fit of a record; all
+the candidates' output-error fits go through :func:`fit_candidates`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+from scipy import stats
+
+from fricjax.diagnose.catalogue import CATALOGUE, candidate
+from fricjax.diagnose.evidence import NearRest
+from fricjax.model.simulate import simulate
+from fricjax.model.system import Model
+from fricjax.output_error import OutputErrorFit, OutputErrorSettings, fit_output_error
+from fricjax.params import ParamSpec
+from fricjax.problem import EquationError, Problem
+
+__all__ = [
+    "CandidateFit",
+    "Fitted",
+    "Superset",
+    "fit_base",
+    "fit_candidates",
+    "lack_of_fit_p",
+    "starts",
+]
+
+
+# width of a pinned parameter's box where its own spacing is smaller (Superset docstring)
+_PIN = 1e-100
+
+
+@dataclass(frozen=True)
+class Superset:
+    """The base model with every simulable, applicable candidate's term appended: ONE model,
+    so that one compiled output-error program serves the base fit, every candidate's fit at
+    every step and every held-out fit of a record of that length.
+
+    A model "base + active terms" is this superset with every other term *pinned*: its
+    parameters' box collapsed to ``[null, null + max(4 ulp, 1e-100)]`` (amplitudes at 0,
+    shape parameters at their grid's middle), where its force is zero to within 1e-100 of
+    an amplitude. The box is not part of the compiled program (``ParamSpec.structural``),
+    the free/fixed pattern is, so pinning this way costs no compilation. A pinned
+    parameter's Jacobian column is then ~1e-100 of a free one's (a shape parameter's is
+    proportional to its amplitude, itself pinned at 0): Levenberg–Marquardt's damped step
+    along it is nil, so it neither moves nor keeps the solver from meeting its tolerance
+    (a box 1e-9 of the range wide left columns large enough for the damped step to wander
+    along them to the step limit).
+
+    Attributes:
+        record: the record with the base model.
+        problem: the record with the superset model, every parameter in its search range.
+        names: each effect's parameters (in the superset spec).
+    """
+
+    record: Problem
+    problem: Problem
+    names: dict[str, tuple[str, ...]]
+
+    @classmethod
+    def build(cls, record: Problem) -> Superset:
+        """The superset of ``record``'s base model (the catalogue's order)."""
+        model, spec, names = record.model, record.spec, {}
+        for c in CATALOGUE:
+            if not (c.simulable and c.applicable(model, spec)):
+                continue
+            before = set(spec.names)
+            model, spec = c.extend(model, spec, record)
+            names[c.effect] = tuple(n for n in spec.names if n not in before)
+        return cls(record, replace(record, model=model, spec=spec), names)
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        return tuple(self.names)
+
+    def model(self, active: Sequence[str]) -> Problem:
+        """The record with base + ``active`` terms: every other term pinned (docstring)."""
+        spec = self.problem.spec
+        pinned = {n for e, ns in self.names.items() if e not in active for n in ns}
+        params = []
+        for q in spec.params:
+            if q.name in pinned and q.free:
+                up = q.init + max(4.0 * float(np.spacing(q.init)), _PIN)
+                q = replace(q, lower=q.init, upper=up)
+            params.append(q)
+        return replace(self.problem, spec=replace(spec, params=tuple(params)))
+
+    def n_free(self, active: Sequence[str]) -> int:
+        """Free parameters of base + ``active`` (the pinned ones are not free)."""
+        own = sum(self.problem.spec[n].free for e in active for n in self.names[e])
+        return self.record.spec.n_free + own
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """A model fitted to the record by output error: base + ``active`` terms of ``superset``,
+    ``fit`` the output-error fit (cost in σ_x²)."""
+
+    superset: Superset
+    active: tuple[str, ...]
+    fit: OutputErrorFit
+
+    @property
+    def problem(self) -> Problem:
+        """The record with this model (the superset, the inactive terms pinned)."""
+        return self.superset.model(self.active)
+
+    @property
+    def n_free(self) -> int:
+        return self.superset.n_free(self.active)
+
+    @property
+    def theta(self) -> np.ndarray:
+        """All superset parameters [D] at the optimum (the superset spec's order)."""
+        return self.superset.problem.spec.flatten(self.fit.params)
+
+    @property
+    def cost(self) -> float:
+        """E at the optimum [σ_x²]."""
+        return float(self.fit.cost)
+
+    def reduced(self) -> tuple[Model, ParamSpec, np.ndarray]:
+        """(model, spec, θ) of base + the active terms alone, for files a user reads."""
+        model, spec = self.superset.record.model, self.superset.record.spec
+        for e in self.active:
+            model, spec = candidate(e).extend(model, spec, self.superset.record)
+        return model, spec, spec.flatten({n: self.fit.params[n] for n in spec.free_names})
+
+
+@dataclass(frozen=True)
+class CandidateFit:
+    """One candidate fitted next to ``base`` (module docstring).
+
+    Attributes:
+        effect: catalogue name.
+        fitted: base + term at its best start.
+        base: the base fit its LR is taken against (the lower of the two, docstring).
+        k: the term's free parameters.
+        lr, p_value, delta_bic: the statistic (module docstring).
+        params: the term's own parameters [SI].
+    """
+
+    effect: str
+    fitted: Fitted
+    base: Fitted
+    k: int
+    lr: float
+    p_value: float
+    delta_bic: float
+    params: dict[str, float]
+
+    def passes(self, limit: float, min_delta_bic: float) -> bool:
+        """Significant at ``limit`` (the per-candidate α) and ΔBIC above ``min_delta_bic``."""
+        return self.p_value < limit and self.delta_bic > min_delta_bic
+
+
+# A fit is run again from its end while its cost still falls by more than this [σ_x²]: the
+# judge's thresholds are tens of σ_x² (ΔBIC > 10 beyond k·ln n), so a fit this close to its
+# minimum cannot move a decision, and a descent cut short cannot pass for a term's gain.
+CONVERGED = 0.5
+# most restarts of one fit (each at most ``max_steps`` Levenberg–Marquardt steps)
+MAX_ROUNDS = 8
+
+
+def converged(
+    problem: Problem,
+    start: Mapping[str, float],
+    settings: OutputErrorSettings,
+    states: tuple[np.ndarray, np.ndarray] | None = None,
+    fit: OutputErrorFit | None = None,
+) -> OutputErrorFit:
+    """:func:`~fricjax.output_error.fit_output_error` from ``start`` (or continued from
+    ``fit``), restarted from its end until its cost falls by less than :data:`CONVERGED`:
+    Levenberg–Marquardt on output error often meets no tolerance within ``max_steps``."""
+    fit = fit or fit_output_error(problem, dict(start), settings, states)
+    for _ in range(MAX_ROUNDS - 1):
+        if fit.success:
+            break
+        again = fit_output_error(problem, dict(fit.params), settings, (fit.states_x, fit.states_v))
+        done = fit.cost - again.cost < CONVERGED
+        fit = again if again.cost < fit.cost else fit
+        if done:
+            break
+    return fit
+
+
+def fit_base(sup: Superset, start: Mapping[str, float], settings: OutputErrorSettings) -> Fitted:
+    """The base model fitted by output error from ``start`` (named values), to convergence."""
+    full = {**sup.problem.spec.as_dict(), **dict(start)}
+    return Fitted(sup, (), converged(sup.model(()), full, settings))
+
+
+def f_pvalue(lr: Float[np.ndarray, "..."], k: int, nu: int) -> Float[np.ndarray, "..."]:
+    """``P(F(k, ν) > LR/k)``: the p of a likelihood ratio [σ̂_x²] of k parameters when σ̂_x²
+    carries ν degrees of freedom (module docstring)."""
+    kk = max(k, 1)
+    return stats.f.sf(np.asarray(lr) / kk, kk, nu)
+
+
+def _judge_numbers(
+    base_cost: float, fit: OutputErrorFit, k: int, n: int, nu: int
+) -> tuple[float, float, float]:
+    """(LR, p, ΔBIC) of a fit against the base cost (module docstring)."""
+    # LM never ends above its start, the base optimum with the term at its null, so the
+    # nested fit is not worse than the base up to the solver's tolerance
+    lr = max(base_cost - float(fit.cost), 0.0)
+    return lr, float(f_pvalue(lr, k, nu)), float(lr - k * math.log(n))
+
+
+def fit_candidates(
+    base: Fitted,
+    candidates: Sequence[tuple[str, Sequence[Mapping[str, float]]]],
+    settings: OutputErrorSettings,
+    nu: int,
+) -> list[CandidateFit]:
+    """Every candidate ``(effect, starts)`` fitted by output error from ``base``'s optimum
+    (amplitudes at their null, nonlinear parameters at each start), the best start kept,
+    judged against ``base`` (module docstring). The one place where the candidates'
+    output-error fits run."""
+    sup, n = base.superset, base.superset.record.n
+    states = (base.fit.states_x, base.fit.states_v)
+    out = []
+    for effect, nl_starts in candidates:
+        active = (*base.active, effect)
+        pb = sup.model(active)
+        # every start gets one round; the best is then run to convergence
+        best: OutputErrorFit | None = None
+        for nl in nl_starts or ({},):
+            fit = fit_output_error(pb, {**base.fit.params, **nl}, settings, states)
+            if best is None or fit.cost < best.cost:
+                best = fit
+        assert best is not None
+        best = Fitted(sup, active, converged(pb, {}, settings, fit=best))
+        k = best.n_free - base.n_free
+        lr, p, dbic = _judge_numbers(base.cost, best.fit, k, n, nu)
+        own = {q: float(best.fit.params[q]) for q in sup.names[effect]}
+        out.append(CandidateFit(effect, best, base, k, lr, p, dbic, own))
+    return out
+
+
+def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> CandidateFit:
+    """``cf`` judged against the lower of its base and the base refitted from where the
+    candidate's fit ended (module docstring)."""
+    end = cf.fitted.fit
+    start = {**end.params, **{q: cf.base.fit.params[q] for q in cf.base.superset.names[cf.effect]}}
+    fit = converged(cf.base.problem, start, settings, (end.states_x, end.states_v))
+    if fit.cost >= cf.base.cost:
+        return cf
+    base = Fitted(cf.base.superset, cf.base.active, fit)
+    lr, p, dbic = _judge_numbers(base.cost, end, cf.k, base.superset.record.n, nu)
+    return replace(cf, base=base, lr=lr, p_value=p, delta_bic=dbic)
+
+
+def lack_of_fit_p(fitted: Fitted, nu: int) -> float:
+    """p of a model's output-error cost against the record's noise: E over its
+    ``ν_r = n_residual − d − 2S`` residual degrees of freedom (d parameters, S segments' two
+    states) follows ``F(ν_r, ν)`` when the model is right."""
+    f = fitted.fit
+    dof = max(f.n_residual - fitted.n_free - 2 * f.n_segments, 1)
+    return float(stats.f.sf(f.cost / dof, dof, nu))
+
+
+def simulation_error(fitted: Fitted) -> float:
+    """RMS of x_sim − x [m] of one open-loop simulation over the whole record from its first
+    recorded state (the figure a user sees when replaying the model); NaN where the
+    simulator rejects the model."""
+    pb = fitted.problem
+    p = pb.spec.unflatten(jnp.asarray(fitted.theta))
+    try:
+        traj = simulate(
+            pb.model,
+            p,
+            jnp.asarray(pb.t),
+            float(pb.x[0]),
+            float(pb.v[0]),
+            jnp.asarray(pb.u),
+        )
+    except Exception:  # a model the simulator rejects: report no figure rather than fail
+        return math.nan
+    err = np.asarray(traj.x) - pb.x
+    return float(np.sqrt(np.mean(err**2)))
+
+
+def record_gains(before: Fitted, after: Fitted) -> tuple[float, float]:
+    """Relative gains ``1 − after/before`` of the record's own EMS [N²] (equation error at
+    the output-error optimum) and open-loop simulation error [m]: a term that wins the test
+    statistic but worsens what the user sees stands in for something else."""
+    ems = 1 - after.problem.ems(after.theta) / before.problem.ems(before.theta)
+    sim_b, sim_a = simulation_error(before), simulation_error(after)
+    sim = 1 - sim_a / sim_b if math.isfinite(sim_a) and math.isfinite(sim_b) else math.nan
+    return float(ems), float(sim)
+
+
+# -- starts --------------------------------------------------------------------------------
+
+
+@eqx.filter_jit
+def _columns(fn: EquationError, thetas: Float[Array, "B d"]) -> Float[Array, "B n"]:
+    """Equation-error residuals [N] at a batch of parameter vectors."""
+    return jax.vmap(fn)(thetas)
+
+
+def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[dict[str, float]]:
+    """Up to ``n_starts`` grid points of ``effect``'s nonlinear parameters, the best local
+    maxima of its equation-error score at ``current``'s optimum (module docstring); ``[{}]``
+    for a candidate without nonlinear parameters."""
+    sup, c = current.superset, candidate(effect)
+    grid = c.grid(sup.record)
+    if not grid:
+        return [{}]
+    spec = sup.problem.spec
+    names = list(spec.free_names)
+    lin = [q for q in sup.names[effect] if q not in grid]
+    keys = list(grid)
+    g = len(grid[keys[0]])
+    theta0 = current.theta
+    b = g * (1 + len(lin))
+    # batches padded to a power of two: a few compiled shapes serve every grid
+    rows = np.repeat(theta0[None, :], 1 << (b - 1).bit_length(), axis=0)
+    for name in keys:
+        rows[:b, names.index(name)] = np.tile(grid[name], 1 + len(lin))
+    step = {q: 0.01 * (spec[q].upper - spec[q].lower) for q in lin}
+    for j, q in enumerate(lin, 1):
+        rows[j * g : (j + 1) * g, names.index(q)] = step[q]
+    r = np.asarray(_columns(sup.problem.residual_fn, jnp.asarray(rows)))[:b]
+    keep = ~band.mask if band.mask.shape[0] == r.shape[1] else np.ones(r.shape[1], bool)
+    r = r[:, keep]
+    r0 = r[:g]  # the current residual, the same at every grid point (term at its null)
+    cols = np.stack([(r[j * g : (j + 1) * g] - r0) / step[q] for j, q in enumerate(lin, 1)], -1)
+    # the current model's own columns, projected off: what it absorbs is no score
+    own = [names.index(q) for q in current.problem.spec.free_names if q not in _pinned(current)]
+    jac = np.asarray(jax.jacfwd(sup.problem.residual_fn)(jnp.asarray(theta0)))[keep][:, own]
+    qb, _ = np.linalg.qr(jac)
+    res = r0[0] - qb @ (qb.T @ r0[0])
+    cols = cols - np.einsum("nk,gkj->gnj", qb, np.einsum("nk,gnj->gkj", qb, cols))
+    z = np.einsum("gnj,n->gj", cols, res)
+    gram = np.einsum("gnj,gnk->gjk", cols, cols) + 1e-30 * np.eye(len(lin))
+    score = np.einsum("gj,gj->g", z, np.linalg.solve(gram, z[..., None])[..., 0])
+    score = np.where(np.isfinite(score), score, -np.inf)
+    # local maxima along the first (slowest) axis, each the best over the other axes
+    first = grid[keys[0]]
+    axis = np.unique(first)
+    best = np.array([np.max(score[first == a]) for a in axis])
+    peaks = [
+        i
+        for i in range(axis.size)
+        if (i == 0 or best[i] >= best[i - 1]) and (i == axis.size - 1 or best[i] >= best[i + 1])
+    ]
+    peaks = sorted(peaks, key=lambda i: -best[i])[:n_starts]
+    out = []
+    for i in peaks:
+        idx = np.flatnonzero(first == axis[i])
+        j = int(idx[np.argmax(score[idx])])
+        out.append({k: float(grid[k][j]) for k in keys})
+    return out or [{}]
+
+
+def _pinned(fitted: Fitted) -> set[str]:
+    return {n for e, ns in fitted.superset.names.items() if e not in fitted.active for n in ns}
+
+
+def remaining(current: Fitted) -> list[str]:
+    """The superset's effects not yet in ``current``'s model."""
+    return [e for e in current.superset.effects if e not in current.active]

@@ -1,0 +1,138 @@
+"""The output-error judge (fricjax.diagnose.judge): its statistic keeps its false-alarm rate on
+nulls, its ranking starts a hidden effect's fit at its place, and end to end a hidden Stribeck
+drop is named while the same plant without it gets no finding."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import fricjax.diagnose.catalogue as cat
+from fricjax.config import Config
+from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
+from fricjax.diagnose.evidence import near_rest_band, record_noise
+from fricjax.diagnose.judge import Fitted, Superset, _judge_numbers, f_pvalue, starts
+from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
+from fricjax.identify import IdentifySettings
+from fricjax.problem import build_problem
+
+
+@pytest.mark.parametrize(("k", "nu"), [(1, 20), (2, 48), (3, 1_000_000)])
+def test_the_likelihood_ratio_keeps_its_false_alarm_rate_when_sigma_is_estimated(
+    k: int, nu: int
+) -> None:
+    # Under the null, LR in units of the estimated σ̂² is χ²_k·σ²/σ̂² with σ̂²/σ² ~ χ²_ν/ν:
+    # the F(k, ν) reference is exact, where χ²_k alone would overstate significance for
+    # small ν. 20 000 draws: the rate at α = 0.01 is within 4 binomial errors of it.
+    rng = np.random.default_rng(k)
+    draws, alpha = 20_000, 0.01
+    ratio = rng.chisquare(nu, draws) / nu
+    lr = rng.chisquare(k, draws) / ratio
+    p = f_pvalue(lr, k, nu)
+    p0 = _judge_numbers(100.0, SimpleNamespace(cost=100.0 - lr[0]), k, 1000, nu)[1]
+    assert p0 == pytest.approx(p[0], rel=1e-9)
+    err = math.sqrt(alpha * (1 - alpha) / draws)
+    assert abs(np.mean(p < alpha) - alpha) < 4 * err
+    naive = np.mean(stats.chi2.sf(lr, k) < alpha)
+    if nu < 100:
+        assert naive > alpha + 4 * err  # why F and not χ²: the σ̂ error matters
+
+
+def test_delta_bic_is_the_ratio_less_the_parameters_penalty() -> None:
+    lr, _, dbic = _judge_numbers(500.0, SimpleNamespace(cost=400.0), 2, 1000, 50)
+    assert lr == 100.0 and dbic == pytest.approx(100.0 - 2 * math.log(1000))
+    # a fit ending above the base (LM's tolerance) is no evidence against it
+    assert _judge_numbers(500.0, SimpleNamespace(cost=500.5), 2, 1000, 50)[0] == 0.0
+
+
+@pytest.mark.slow  # a 0.5 s twin simulated at 16 sub-steps, and the ranking compiled
+def test_the_ranking_starts_a_hidden_harmonic_at_its_frequency(paper_config: Config) -> None:
+    f_true = 37.0
+    truth = {**PAPER_TRUTH, "harm_A": 300.0, "harm_B": -200.0, "harm_f": f_true}
+    rec, _ = paper_twin(
+        duration=0.5, seed=3, model=PAPER_MODEL.with_terms([cat.ExtraHarmonic()]), truth=truth
+    )
+    pb = build_problem(rec, paper_config)
+    sup = Superset.build(pb)
+    truth = {**sup.problem.spec.as_dict(), **pb.spec.as_dict(pb.theta(PAPER_TRUTH))}
+    base = Fitted(sup, (), SimpleNamespace(params=truth))  # type: ignore[arg-type]
+    band = near_rest_band(pb, record_noise(pb).sigma_x)
+    got = starts(base, "extra_harmonic", band, 2)
+    axis = cat.candidate("extra_harmonic").grid(pb)["harm_f"]
+    step = float(axis[1] - axis[0])
+    assert len(got) == 2
+    assert abs(got[0]["harm_f"] - f_true) <= step
+    # a candidate without nonlinear parameters starts once, at the base
+    assert starts(base, "quadratic_drag", band, 2) == [{}]
+
+
+@pytest.fixture(scope="module")
+def stribeck_diagnoses(paper_config: Config) -> dict[str, object]:
+    drop = {"stribeck_A": 1500.0, "stribeck_vst": 0.05}
+
+    def run(model: object, truth: dict[str, float]) -> object:
+        rec, _ = paper_twin(duration=0.5, seed=5, model=model, truth=truth)
+        pb = build_problem(rec, paper_config)
+        return diagnose(
+            pb,
+            identify_settings=IdentifySettings(fast_compile=True),
+            settings=DiagnoseSettings(max_terms=1, time_limit=math.inf),
+        )
+
+    return {
+        "drop": run(PAPER_MODEL.with_terms([cat.GaussianStribeck()]), {**PAPER_TRUTH, **drop}),
+        "null": run(PAPER_MODEL, PAPER_TRUTH),
+    }
+
+
+@pytest.mark.slow  # two whole diagnoses: every candidate's output-error fit compiled
+def test_a_hidden_stribeck_drop_is_named_first_and_pays_everywhere(stribeck_diagnoses) -> None:
+    diag = stribeck_diagnoses["drop"]
+    assert diag.findings and diag.findings[0]["effect"] == "stribeck"
+    f = diag.findings[0]
+    assert f["record_ems_gain"] >= 0 and not f["record_simulation_gain"] < 0
+    assert any(v["judged"] and v["gain"] > 0 for v in f["heldout"])
+    assert f["p_value"] < 0.01 / len(diag.steps[0].fits) and f["delta_bic"] > 10
+
+
+@pytest.mark.slow
+def test_the_report_names_the_finding_with_its_held_out_gain(stribeck_diagnoses, tmp_path) -> None:
+    paths = write_diagnosis(stribeck_diagnoses["drop"], tmp_path)
+    doc = json.loads(paths["json"].read_text())
+    assert doc["findings"][0]["effect"] == "stribeck"
+    tested = {row["effect"] for row in doc["candidates"][0]["tested"]}
+    assert "stribeck" in tested and "presliding_hysteresis" not in tested  # not simulable
+    md = paths["report"].read_text()
+    assert "Finding 1: `stribeck`" in md and "held out:" in md
+    assert "σ_x" in md and "m/s" in md
+
+
+@pytest.mark.slow
+def test_the_same_plant_without_it_gets_no_finding(stribeck_diagnoses) -> None:
+    diag = stribeck_diagnoses["null"]
+    assert diag.findings == []
+    assert diag.fit["before"]["lack_of_fit_p"] > 0.01
+
+
+def test_the_superset_with_every_term_pinned_is_the_base_model(twin_problem) -> None:
+    # one compiled program serves every candidate only if the pinned terms add no force:
+    # at their nulls the superset's residual is the base's, to rounding
+    sup = Superset.build(twin_problem)
+    assert "presliding_hysteresis" not in sup.effects and "stribeck" in sup.effects
+    theta = twin_problem.theta(PAPER_TRUTH)
+    full = sup.problem.spec.flatten(
+        {**sup.problem.spec.as_dict(), **twin_problem.spec.as_dict(theta)}
+    )
+    base_r = twin_problem.residual(theta)
+    np.testing.assert_allclose(sup.model(()).residual(full), base_r, rtol=0, atol=1e-9)
+    pinned = sup.model(("stribeck",)).spec
+    assert pinned["stribeck_A"].upper - pinned["stribeck_A"].lower > 1.0  # free to fit
+    width = pinned["harm_A"].upper - pinned["harm_A"].lower
+    assert width < 1e-8 * (sup.problem.spec["harm_A"].upper - sup.problem.spec["harm_A"].lower)
+    assert sup.n_free(()) == twin_problem.spec.n_free
+    assert sup.n_free(("stribeck",)) == twin_problem.spec.n_free + 2
