@@ -533,7 +533,8 @@ def _heldout(
 ) -> dict[str, Any] | None:
     """Leave-one-recording-out gain of the term (module docstring); None when the time
     limit cut it (the candidate is then not named)."""
-    folds, total, judged = [], 0.0, 0
+    folds: list[dict[str, Any]] = []
+    total, judged = 0.0, 0
     names = [p.name for p in current]
     for k in range(len(current)):
         if budget.hit("heldout"):

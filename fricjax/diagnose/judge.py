@@ -272,11 +272,11 @@ def fit_candidates(
             if best is None or fit.cost < best.cost:
                 best = fit
         assert best is not None
-        best = Fitted(sup, active, converged(pb, {}, settings, fit=best))
-        k = best.n_free - base.n_free
-        lr, p, dbic = _judge_numbers(base.cost, best.fit, k, n, nu)
-        own = {q: float(best.fit.params[q]) for q in sup.names[effect]}
-        out.append(CandidateFit(effect, best, base, k, lr, p, dbic, own))
+        fitted = Fitted(sup, active, converged(pb, {}, settings, fit=best))
+        k = fitted.n_free - base.n_free
+        lr, p, dbic = _judge_numbers(base.cost, fitted.fit, k, n, nu)
+        own = {q: float(fitted.fit.params[q]) for q in sup.names[effect]}
+        out.append(CandidateFit(effect, fitted, base, k, lr, p, dbic, own))
     return out
 
 
