@@ -346,13 +346,18 @@ def decide(
                     continue
                 todo.append((effect, starts(current, effect, band, settings.n_starts)))
         fits: list[CandidateFit] = []
+        # a candidate is started only if the longest one so far would still end within the
+        # limits: the budget is then overrun by a misjudged length, not by a whole candidate
+        longest = 0.0
         with clock.stage("candidates", "output-error fits of the candidates"):
             for effect, st in todo:
-                if clock.over("candidates"):
-                    clock.untested("candidates", effect)
+                if clock.over("candidates", longest):
+                    clock.untested("candidates", effect, longest)
                     continue
                 clock.note(f"output-error fit of {effect}")
+                began = clock.elapsed()
                 fits += fit_candidates(current, [(effect, st)], oe, evidence.nu)
+                longest = max(longest, clock.elapsed() - began)
         limit = settings.alpha / len(cands)
         passing = sorted(
             (f for f in fits if f.passes(limit, settings.min_delta_bic)),

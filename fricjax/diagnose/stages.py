@@ -112,29 +112,31 @@ class Clock:
         running = self.now() - self._mark if self._open and self._open[-1] == name else 0.0
         return self.spent.get(name, 0.0) + running
 
-    def hit(self, name: str) -> str:
+    def hit(self, name: str, need: float = 0.0) -> str:
         """Which limit stops more work at stage ``name``: ``"total"``, the stage's own
-        (``name``), or ``""`` (none hit)."""
-        if self.elapsed() > self.total:
+        (``name``), or ``""`` (none hit). ``need`` [s]: the expected length of the unit of
+        work about to start; a unit that would end past a limit is not started, so a limit
+        is overrun by at most the error of that expectation, not by a whole unit."""
+        if self.elapsed() + need > self.total:
             return "total"
-        if self.used(name) > self.limits.get(name, math.inf):
+        if self.used(name) + need > self.limits.get(name, math.inf):
             return name
         return ""
 
-    def over(self, name: str) -> bool:
-        """Whether a limit stops more work at stage ``name``."""
-        return bool(self.hit(name))
+    def over(self, name: str, need: float = 0.0) -> bool:
+        """Whether a limit stops more work at stage ``name`` (``need``: as in :meth:`hit`)."""
+        return bool(self.hit(name, need))
 
-    def skip(self, name: str, what: str, effect: str = "") -> None:
+    def skip(self, name: str, what: str, effect: str = "", need: float = 0.0) -> None:
         """Record ``what`` as left out at stage ``name`` for lack of time (``effect``: the
-        candidate it leaves untested)."""
-        item = Skipped(name, what, self.elapsed(), self.hit(name) or "total", effect)
+        candidate it leaves untested; ``need``: as in :meth:`hit`)."""
+        item = Skipped(name, what, self.elapsed(), self.hit(name, need) or "total", effect)
         self.skipped.append(item)
         self.note(f"time limit: {what}")
 
-    def untested(self, name: str, effect: str) -> None:
+    def untested(self, name: str, effect: str, need: float = 0.0) -> None:
         """Record candidate ``effect`` as not tested at stage ``name`` (time limit)."""
-        self.skip(name, f"{effect}: not tested (time limit)", effect)
+        self.skip(name, f"{effect}: not tested (time limit)", effect, need)
 
     def not_tested(self) -> list[str]:
         """The candidates a limit left untested, each once, in the order they were met."""

@@ -73,6 +73,20 @@ def test_a_limit_acts_only_once_its_stage_or_the_total_has_run_past_it() -> None
     assert skipped[0]["what"] == "impact: not tested (time limit)"
 
 
+def test_a_unit_that_would_end_past_a_limit_is_not_started() -> None:
+    now = Ticks()
+    clock = Clock(limits={"candidates": 10.0}, total=20.0, now=now)
+    with clock.stage("candidates"):
+        now.t += 6.0
+        assert not clock.over("candidates", need=4.0)  # would end at the limit
+        assert clock.hit("candidates", need=4.5) == "candidates"
+        clock.untested("candidates", "impact", need=4.5)
+    now.t += 8.0  # 14 s in all: 7 s of a 6 s unit would pass the total
+    assert not clock.over("heldout", need=6.0)
+    assert clock.hit("heldout", need=7.0) == "total"
+    assert clock.summary()["skipped"][0]["limit"] == "candidates"
+
+
 def test_time_limits_from_the_config_table() -> None:
     s = DiagnoseSettings.from_dict({"time_limit": 120, "stage_limits": {"candidates": 30}})
     assert s.time_limit == 120.0
