@@ -576,6 +576,27 @@ def sweep_recording(
     return table, path, interrupted
 
 
+def _diagnose_settings(cfg: Config, overrides: dict[str, Any] | None) -> tuple[Any, Any, bool]:
+    """(identify settings, diagnose settings, whether a time limit was given) of a
+    diagnosis: the config's ``[diagnose]`` table checked alone first, so an error names
+    where the bad value came from (the file or the command line), then the command line's
+    values over it. The base fit runs once per diagnosis: compiled for compile speed
+    (see identify_recording)."""
+    from fricjax.diagnose.run import DiagnoseSettings
+    from fricjax.identify import CLI_SOURCE, IdentifySettings
+
+    ident = dataclasses.replace(
+        IdentifySettings.from_tables(cfg.tables, source=cfg.source), fast_compile=True
+    )
+    table = dict(cfg.table("diagnose"))
+    settings = DiagnoseSettings.from_dict(table, source=cfg.source)
+    cli = {k: v for k, v in (overrides or {}).items() if v is not None}
+    if cli:
+        DiagnoseSettings.from_dict(cli, source=CLI_SOURCE, flags=True)
+        settings = DiagnoseSettings.from_dict({**table, **cli}, source=cfg.source)
+    return ident, settings, "time_limit" in cli or "time_limit" in table
+
+
 def diagnose_recording(
     recording: str | Path,
     config: str | Path,
@@ -594,8 +615,7 @@ def diagnose_recording(
     :func:`read_recording`, which ignores that group.
     """
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
-    from fricjax.diagnose.run import OUTPUT_FILES, DiagnoseSettings, diagnose, write_diagnosis
-    from fricjax.identify import CLI_SOURCE, IdentifySettings
+    from fricjax.diagnose.run import OUTPUT_FILES, diagnose, write_diagnosis
 
     check_outputs(
         [Path(out) / name for name in OUTPUT_FILES],
@@ -603,18 +623,7 @@ def diagnose_recording(
         "--out",
     )
     _, cfg, problem = load(recording, config, mass=mass)
-    # the base fit runs once per diagnosis: compile for compile speed (see identify_recording)
-    ident = dataclasses.replace(
-        IdentifySettings.from_tables(cfg.tables, source=cfg.source), fast_compile=True
-    )
-    table = dict(cfg.table("diagnose"))
-    # the file's table is checked alone first, so an error names where the bad value
-    # came from: the file, or the command line
-    settings = DiagnoseSettings.from_dict(table, source=cfg.source)
-    cli = {k: v for k, v in (overrides or {}).items() if v is not None}
-    if cli:
-        DiagnoseSettings.from_dict(cli, source=CLI_SOURCE, flags=True)
-        settings = DiagnoseSettings.from_dict({**table, **cli}, source=cfg.source)
+    ident, settings, _ = _diagnose_settings(cfg, overrides)
     val = None
     if validation is not None:
         _, _, val = load(validation, cfg, mass=mass)
@@ -649,8 +658,6 @@ def diagnose_recordings(
     otherwise); ``effects``: the catalogue entries to try (default all)."""
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.diagnose.across import Budget, diagnose_across, write_across
-    from fricjax.diagnose.run import DiagnoseSettings
-    from fricjax.identify import CLI_SOURCE, IdentifySettings
     from fricjax.joint import JointSettings
 
     if len(recordings) < 2:
@@ -663,17 +670,9 @@ def diagnose_recordings(
     )
     cfg = load_config(config)
     joint = JointSettings.from_config(cfg)
-    ident = dataclasses.replace(
-        IdentifySettings.from_tables(cfg.tables, source=cfg.source), fast_compile=True
-    )
-    table = dict(cfg.table("diagnose"))
-    settings = DiagnoseSettings.from_dict(table, source=cfg.source)
-    cli = {k: v for k, v in (overrides or {}).items() if v is not None}
-    if cli:
-        DiagnoseSettings.from_dict(cli, source=CLI_SOURCE, flags=True)
-        settings = DiagnoseSettings.from_dict({**table, **cli}, source=cfg.source)
+    ident, settings, limited = _diagnose_settings(cfg, overrides)
     budget = Budget()
-    if "time_limit" in cli or "time_limit" in table:
+    if limited:
         budget.total = float(settings.time_limit)
     recs = alike_recordings(recordings, mass=mass)
     problems = [build_problem(rec, cfg) for rec in recs]

@@ -94,6 +94,7 @@ from scipy import stats
 
 from fricjax.diagnose.catalogue import CATALOGUE, Candidate, candidate
 from fricjax.diagnose.evidence import effective_dof, record_noise
+from fricjax.diagnose.run import jsonable
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings
 from fricjax.io.atomic import make_folder, write_text_atomic
@@ -856,19 +857,6 @@ def _explain_term(cand: Candidate, rec: dict[str, Any], ext: list[Problem], tfit
 
 
 # -- output -------------------------------------------------------------------------------
-def _clean(obj: Any) -> Any:
-    """JSON-safe: non-finite floats as null, numpy scalars as Python numbers."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
 def report_markdown(diag: AcrossDiagnosis) -> str:
     """report.md: the recordings, the findings with their evidence, every test, time."""
     d = diag.to_json()
@@ -916,7 +904,7 @@ def report_markdown(diag: AcrossDiagnosis) -> str:
 def write_across(diag: AcrossDiagnosis, out: str | Path) -> dict[str, Path]:
     """Write DIR/diagnosis.json and DIR/report.md (atomic)."""
     folder = make_folder(out)
-    text = json.dumps(_clean(diag.to_json()), indent=2, ensure_ascii=False)
+    text = json.dumps(jsonable(diag.to_json()), indent=2, ensure_ascii=False)
     return {
         "json": write_text_atomic(folder / _OUTPUTS[0], text + "\n"),
         "report": write_text_atomic(folder / _OUTPUTS[1], report_markdown(diag)),

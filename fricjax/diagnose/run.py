@@ -230,7 +230,7 @@ class Diagnosis:
     clock: Clock = field(default_factory=Clock)
 
     def as_json(self) -> dict[str, Any]:
-        return _jsonable(
+        return jsonable(
             {
                 "recording": self.recording,
                 "base_model": self.base_model,
@@ -309,11 +309,12 @@ def at_bounds(spec: ParamSpec, params: dict[str, float]) -> dict[str, str]:
     return {n: side for n, v in params.items() if (side := on_bound(spec, n, float(v)))}
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
+    """JSON-safe: non-finite floats as null, numpy scalars as Python numbers."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.generic):
         obj = obj.item()
     if isinstance(obj, float) and not math.isfinite(obj):
