@@ -607,7 +607,7 @@ def diagnose_recording(
     overrides: dict[str, Any] | None = None,
     on_stage: Callable[[StageEvent], None] | None = None,
 ) -> tuple[Any, dict[str, Path]]:
-    """``fricjax diagnose``: base fit, locate, name, model, prove; write DIR/diagnosis.json.
+    """``fricjax diagnose``: base fit, catalogue scored and refitted; writes DIR/diagnosis.json.
 
     ``overrides``: ``[diagnose]`` keys set from the command line (``time_limit`` among
     them); ``on_stage``: called with each :class:`~fricjax.diagnose.stages.StageEvent`

@@ -5,10 +5,10 @@ test leaves out, so σ̂ from the residual grows exactly where the model is wron
 loses power, the BIC's penalty shrinks relative to the misfit it should judge, and a band
 sized by σ̂ (the samples near rest) widens over the physics it hides. The displacement
 noise is measured instead from the recorded x alone (:func:`fricjax.data.noise.
-estimate_noise`: the high band of x by differences, or a quantisation lattice), and the
-whitener (:mod:`fricjax.diagnose.whiten`) carries it into the equation error: there the
-whitened residual noise is ``N(0, σ_x²·I)``, so ``σ_x²`` *is* the variance every whitened
-statistic is divided by.
+estimate_noise`: the high band of x by differences, or a quantisation lattice). The judge
+divides its output-error residual (simulated minus recorded x) by it, so where the model is
+right that residual's noise is ``N(0, I)`` and ``σ_x²`` *is* the variance every statistic is
+measured in.
 
 Its own uncertainty. σ̂_x comes with a standard error ``se`` (of σ̂, not of σ̂²). For a
 scale estimated from ν independent squares, ``σ̂²/σ² ~ χ²_ν/ν``, so ``Var(σ̂²)/σ⁴ = 2/ν``
@@ -19,16 +19,16 @@ of freedom
 
 (Satterthwaite's matching of the first two moments; ``2·(σ̂²/se(σ̂²))²`` is the same
 number). A statistic ``S`` with k regressors
-divided by σ̂² then follows ``S/k ~ F(k, ν)`` rather than ``χ²_k/k`` (the
-``external`` law of :func:`fricjax.diagnose.locate.score_pvalue`), and a lack-of-fit ratio
+divided by σ̂² then follows ``S/k ~ F(k, ν)`` rather than ``χ²_k/k``
+(:func:`fricjax.diagnose.judge.f_pvalue`), and a lack-of-fit ratio
 ``(RSS_w/dof)/σ̂² ~ F(dof, ν)``. A quantised signal's σ = q/√12 is exact (the rounding
 error of a known lattice), ν = ∞ (:data:`EXACT_DOF` stands for it).
 
-Noise that is not displacement noise. Where the model's drive is a recorded input, that
-input's own noise and a controller's feedback enter the residual as force, which the
-displacement record cannot measure; the diagnosis then whitens by the residual's smoothed
-spectrum (``noise = "spectral"``) and takes the scale from that whitened residual, and the
-report says so (:attr:`Evidence.scale_source`).
+Noise that is not displacement noise. The model of the noise is displacement noise (white,
+or a quantisation lattice), and the report says which. Where a model's drive is a recorded
+input, that input's own noise and a controller's feedback enter the simulation as force, which
+the displacement record cannot measure: they show as misfit beyond σ_x, which the lack-of-fit
+test reports (``unexplained``) rather than a catalogue term.
 
 Near rest. A sample is near rest where noise can flip the sign of the filtered velocity:
 ``|v| < κ·σ_v``, ``σ_v = g_v·σ_x`` with ``g_v`` the preprocessing's white-noise gain from x
@@ -87,13 +87,9 @@ class Evidence:
     Attributes:
         noise: σ̂_x of the recorded displacement with its standard error and noise model
             (:class:`~fricjax.data.noise.NoiseEstimate`, metres).
-        scale_source: ``"record"`` (σ̂_x² is the whitened variance: displacement noise) or
-            ``"residual spectrum"`` (a recorded drive input: the whitened scale is the
-            base residual's, module docstring).
     """
 
     noise: NoiseEstimate
-    scale_source: str = "record"
 
     @property
     def sigma_x(self) -> float:

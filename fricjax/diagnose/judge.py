@@ -53,17 +53,26 @@ from fricjax.diagnose.catalogue import CATALOGUE, candidate
 from fricjax.diagnose.evidence import NearRest
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
-from fricjax.output_error import OutputErrorFit, OutputErrorSettings, fit_output_error
+from fricjax.output_error import (
+    OutputErrorFit,
+    OutputErrorSettings,
+    fit_output_error,
+    jacobian_at,
+    output_error_residual,
+)
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
 
 __all__ = [
     "CandidateFit",
     "Fitted",
+    "Score",
     "Superset",
     "fit_base",
     "fit_candidates",
     "lack_of_fit_p",
+    "score_statistic",
+    "screen",
     "starts",
 ]
 
@@ -331,6 +340,122 @@ def record_gains(before: Fitted, after: Fitted) -> tuple[float, float]:
     sim_b, sim_a = simulation_error(before), simulation_error(after)
     sim = 1 - sim_a / sim_b if math.isfinite(sim_a) and math.isfinite(sim_b) else math.nan
     return float(ems), float(sim)
+
+
+# -- the score screen ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Score:
+    """One candidate's score test at the current fit (:func:`screen`).
+
+    Attributes:
+        effect: catalogue name.
+        starts: its nonlinear parameters' start points, best score first (``[{}]`` for a
+            candidate without any).
+        score: the score statistic at the best start [σ_x²].
+        k: directions tested (the term's parameters outside its grid).
+        p_value: ``P(F(k, ν) > score/k)``.
+    """
+
+    effect: str
+    starts: list[dict[str, float]]
+    score: float
+    k: int
+    p_value: float
+
+
+# singular values below this fraction of the largest span no direction of a Jacobian: a
+# parameter the data do not determine (a base column of zeros, two collinear columns)
+_RANK_RTOL = 1e-10
+
+
+def base_basis(j_base: Float[np.ndarray, "m q"]) -> Float[np.ndarray, "m p"]:
+    """Orthonormal basis [m, rank] of the span of the current model's Jacobian columns."""
+    u, sv, _ = np.linalg.svd(j_base, full_matrices=False)
+    if not sv.size or not sv[0] > 0:
+        return u[:, :0]
+    return u[:, sv > sv[0] * _RANK_RTOL]
+
+
+def score_statistic(
+    r: Float[np.ndarray, " m"], basis: Float[np.ndarray, "m p"], cols: Float[np.ndarray, "m k"]
+) -> float:
+    """``S = (Mr)ᵀ·MC·(CᵀMC)⁺·CᵀMr`` [units of r²] (:func:`screen`), ``M = I − UUᵀ`` with
+    ``U = basis``: the drop of ``‖r + J_b·δ_b + C·δ_c‖²`` from its minimum over δ_b alone to
+    its minimum over both (one Gauss–Newton step of the nested model)."""
+    mr = r - basis @ (basis.T @ r)
+    mc = cols - basis @ (basis.T @ cols)
+    if not np.all(np.isfinite(mc)) or not mc.size:
+        return 0.0
+    # directions of C the base already spans leave only rounding in MC: measured against
+    # C's own scale, not MC's, they are dropped rather than fitted to noise
+    u, sv, _ = np.linalg.svd(mc, full_matrices=False)
+    scale = float(np.max(np.linalg.norm(cols, axis=0)))
+    proj = u[:, sv > scale * _RANK_RTOL].T @ mr
+    return float(proj @ proj)
+
+
+def screen(
+    current: Fitted,
+    todo: Sequence[tuple[str, Sequence[Mapping[str, float]]]],
+    settings: OutputErrorSettings,
+    nu: int,
+) -> list[Score]:
+    """Rao's score test of every candidate ``(effect, starts)`` at ``current``'s optimum,
+    in the judge's own metric (output error in units of σ̂_x).
+
+    At the fitted model, with ``r`` [m] its residual r_aug and ``J_b`` the Jacobian of its
+    free parameters and segment states, a term whose parameters ``β`` sit at their null adds
+    columns ``C = ∂r/∂β`` [m, k] (its nonlinear parameters at a start point). With ``M`` the
+    projection off ``J_b``'s span,
+
+        S = (Mr)ᵀ·MC·(CᵀMC)⁺·CᵀMr                                        [σ_x²]
+
+    is the cost one Gauss–Newton step in ``β`` (with the base re-adjusted) would remove: the
+    likelihood ratio of the model linearised at the current fit. Where the current model is
+    right it follows ``χ²_k`` (σ known), ``k·F(k, ν)`` with σ̂_x², and it tends to the LR of
+    the refit under local alternatives, so it measures the same evidence as the judge's LR
+    from one Jacobian, without a fit. The projection also removes what the current fit had
+    left to descend (a fit stopped short of its minimum), so ``S`` is the term's own share.
+
+    One Jacobian (:func:`~fricjax.output_error.jacobian_at`, compiled once per record
+    shape) serves the base and every candidate without nonlinear parameters; one more is
+    taken at each start of the others."""
+    sup = current.superset
+    spec = sup.problem.spec
+    setup = output_error_residual(
+        current.problem, current.fit.params, settings, (current.fit.states_x, current.fit.states_v)
+    )
+    theta = setup.x0
+    names = list(spec.names)
+    P, D = len(names), theta.shape[0]
+    pinned = _pinned(current)
+    base_idx = [i for i, q in enumerate(names) if spec[q].free and q not in pinned]
+    base_idx += list(range(P, D))
+    r, jac = (np.asarray(a) for a in jacobian_at(setup.residual, jnp.asarray(theta)))
+    basis = base_basis(jac[:, base_idx])
+    scores: dict[str, list[tuple[float, dict[str, float]]]] = {}
+    ks: dict[str, int] = {}
+    for effect, nl_starts in todo:
+        grid = candidate(effect).grid(sup.record)
+        own = [names.index(q) for q in sup.names[effect] if q not in grid]
+        ks[effect] = len(own)
+        for nl in nl_starts or ({},):
+            # the term's columns at this start: its amplitudes at their null leave the
+            # trajectory, r and the base's columns as they are
+            row = theta.copy()
+            for q, val in nl.items():
+                row[names.index(q)] = val
+            at = jac if not nl else np.asarray(jacobian_at(setup.residual, jnp.asarray(row))[1])
+            stat = score_statistic(r, basis, at[:, own])
+            scores.setdefault(effect, []).append((stat, dict(nl)))
+    out = []
+    for effect, _ in todo:
+        ranked = sorted(scores[effect], key=lambda s: -s[0])
+        best, k = ranked[0][0], max(ks[effect], 1)
+        out.append(Score(effect, [nl for _, nl in ranked], best, k, float(f_pvalue(best, k, nu))))
+    return out
 
 
 # -- starts --------------------------------------------------------------------------------

@@ -21,7 +21,8 @@ from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt
 
 if TYPE_CHECKING:
-    from fricjax.diagnose.run import Diagnosis
+    from fricjax.diagnose.judge import Score
+    from fricjax.diagnose.run import Diagnosis, Step
 
 _PLACES = {
     "time_s": ("t", "s"),
@@ -198,26 +199,31 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
     return blocks
 
 
+def _candidate_row(st: Step, sc: Score) -> tuple[str, ...]:
+    """One candidate's row: its score, and its refit's statistic and decision if refitted."""
+    head = (sc.effect, f"{sc.score:.1f}", f"{sc.p_value:.2g}")
+    f = next((f for f in st.fits if f.effect == sc.effect), None)
+    if f is None:
+        return (*head, "not refitted", "", "", "")
+    named = {d.fit.effect: d.named for d in st.decisions}
+    decision = "named" if named.get(sc.effect) else ("refused" if sc.effect in named else "")
+    return (*head, f"{f.lr:.1f}", f"{f.p_value:.2g}", f"{f.delta_bic:.1f}", decision)
+
+
 def candidate_blocks(diag: Diagnosis) -> list[Block]:
     blocks: list[Block] = []
     for i, st in enumerate(diag.steps, 1):
-        named = {d.fit.effect: d.named for d in st.decisions}
-        rows = tuple(
-            (
-                f.effect,
-                f"{f.lr:.1f}",
-                f"{f.p_value:.2g}",
-                f"{f.delta_bic:.1f}",
-                "named" if named.get(f.effect) else ("refused" if f.effect in named else ""),
-            )
-            for f in sorted(st.fits, key=lambda f: -f.delta_bic)
-        )
+        rows = tuple(_candidate_row(st, sc) for sc in st.scores)
         blocks += [
             Para(
-                f"Step {i} (each candidate must reach p < {st.limit:.2g} and ΔBIC > "
-                f"{st.min_delta_bic:g}):"
+                f"Step {i}: each candidate's score test at the current model; those with "
+                f"p < {st.screen_limit:.2g} refitted, which must reach p < {st.limit:.2g} and "
+                f"ΔBIC > {st.min_delta_bic:g}:"
             ),
-            Table(("candidate", "LR [σ_x²]", "p", "ΔBIC", "decision"), rows),
+            Table(
+                ("candidate", "score [σ_x²]", "score p", "LR [σ_x²]", "p", "ΔBIC", "decision"),
+                rows,
+            ),
         ]
     return [Heading("Candidates"), *blocks] if blocks else []
 

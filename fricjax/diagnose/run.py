@@ -7,8 +7,10 @@ its estimate), the record's own noise (:mod:`~fricjax.diagnose.evidence`), the c
 the report (:mod:`~fricjax.diagnose.report`).
 
 The rule (:func:`decide`). Forward selection up to ``max_terms``: at each step every
-applicable candidate is fitted next to the current model, and the best by ΔBIC of those that
-pass ``p < α/C`` (C candidates at that step) and ``ΔBIC > min_delta_bic`` is named when also
+applicable candidate's score test is taken at the current model (one Jacobian, no fit), those
+significant at α are fitted next to it (highest score first), and the best by ΔBIC of the
+fits that pass ``p < α/C`` (C candidates at that step) and ``ΔBIC > min_delta_bic`` is named
+when also
 
 * the record's own EMS and open-loop simulation error do not get worse with it, and
 * every held-out check that can judge it (the record's split, a second recording) shows a
@@ -40,6 +42,7 @@ from fricjax.diagnose.heldout import Check, SecondRecording, Split, Verdict
 from fricjax.diagnose.judge import (
     CandidateFit,
     Fitted,
+    Score,
     Superset,
     fit_base,
     fit_candidates,
@@ -47,6 +50,7 @@ from fricjax.diagnose.judge import (
     rebased,
     record_gains,
     remaining,
+    screen,
     simulation_error,
     starts,
 )
@@ -71,6 +75,12 @@ class DiagnoseSettings:
         their dependence) and spent once more on the lack-of-fit test that makes a finding
         ``unexplained``; a null record thus gets any finding with probability ≤ 2α (2 % at
         the default 0.01, under the 5 % the project targets).
+        It is also the level of the score screen (:func:`~fricjax.diagnose.judge.screen`):
+        a candidate is refitted only where its score test at the current fit is
+        significant at α itself. The score is the likelihood ratio of the model linearised
+        at the fit; the screen's level is α·C times the judge's, so a term is dropped
+        unfitted only where its linearised evidence falls short by that factor, and the
+        screen can only remove candidates, never pass one: the family-wise rate stays α.
     min_delta_bic: a term must lower BIC by more than this: 10 is "very strong" evidence on
         Kass & Raftery's scale (posterior odds above 150:1 at equal priors). It guards the
         long records where p alone would pass effects too small to matter.
@@ -198,14 +208,17 @@ class Decision:
 
 @dataclass(frozen=True)
 class Step:
-    """One step of forward selection: every candidate's fit, the decisions on those that
-    passed the statistics (best first), the per-candidate limit α/C, and the model before."""
+    """One step of forward selection: every candidate's score test, the fits of those it
+    passed (``p < screen_limit``), the decisions on the fits that passed the statistics
+    (best first), the per-candidate limit α/C, and the model before."""
 
     current: Fitted
+    scores: tuple[Score, ...]
     fits: tuple[CandidateFit, ...]
     decisions: tuple[Decision, ...]
     limit: float
     min_delta_bic: float
+    screen_limit: float
 
     @property
     def chosen(self) -> Decision | None:
@@ -249,6 +262,8 @@ class Diagnosis:
                     {
                         "step": i + 1,
                         "limit_p": st.limit,
+                        "screen_limit_p": st.screen_limit,
+                        "screened": [_score_json(sc, st) for sc in st.scores],
                         "tested": [_fit_json(f) for f in st.fits],
                         "judged": [_decision_json(d) for d in st.decisions],
                     }
@@ -258,6 +273,16 @@ class Diagnosis:
                 "timing": self.clock.summary(),
             }
         )
+
+
+def _score_json(sc: Score, st: Step) -> dict[str, Any]:
+    return {
+        "effect": sc.effect,
+        "score": sc.score,
+        "k": sc.k,
+        "p_value": sc.p_value,
+        "refit": any(f.effect == sc.effect for f in st.fits),
+    }
 
 
 def _fit_json(f: CandidateFit) -> dict[str, Any]:
@@ -346,18 +371,21 @@ def decide(
                     clock.untested("candidates", effect)
                     continue
                 todo.append((effect, starts(current, effect, band, settings.n_starts)))
+        with clock.stage("candidates", "score test of every candidate"):
+            scores = screen(current, todo, oe, evidence.nu)
+        refit = sorted((s for s in scores if s.p_value < settings.alpha), key=lambda s: -s.score)
         fits: list[CandidateFit] = []
         # a candidate is started only if the longest one so far would still end within the
         # limits: the budget is then overrun by a misjudged length, not by a whole candidate
         longest = 0.0
         with clock.stage("candidates", "output-error fits of the candidates"):
-            for effect, st in todo:
+            for sc in refit:
                 if clock.over("candidates", longest):
-                    clock.untested("candidates", effect, longest)
+                    clock.untested("candidates", sc.effect, longest)
                     continue
-                clock.note(f"output-error fit of {effect}")
+                clock.note(f"output-error fit of {sc.effect}")
                 began = clock.elapsed()
-                fits += fit_candidates(current, [(effect, st)], oe, evidence.nu)
+                fits += fit_candidates(current, [(sc.effect, sc.starts)], oe, evidence.nu)
                 longest = max(longest, clock.elapsed() - began)
         limit = settings.alpha / len(cands)
         passing = sorted(
@@ -380,7 +408,15 @@ def decide(
                 decisions.append(Decision(f, *gains, verdicts))
                 if decisions[-1].named:
                     break
-        step = Step(current, tuple(fits), tuple(decisions), limit, settings.min_delta_bic)
+        step = Step(
+            current,
+            tuple(scores),
+            tuple(fits),
+            tuple(decisions),
+            limit,
+            settings.min_delta_bic,
+            settings.alpha,
+        )
         steps.append(step)
         if step.chosen is None:
             break

@@ -16,9 +16,20 @@ import fricjax.diagnose.catalogue as cat
 from fricjax.config import Config
 from fricjax.data.twin import PAPER_MODEL, PAPER_TRUTH, paper_twin
 from fricjax.diagnose.evidence import near_rest_band, record_noise
-from fricjax.diagnose.judge import Fitted, Superset, _judge_numbers, f_pvalue, starts
+from fricjax.diagnose.judge import (
+    Fitted,
+    Superset,
+    _judge_numbers,
+    base_basis,
+    f_pvalue,
+    remaining,
+    score_statistic,
+    screen,
+    starts,
+)
 from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
 from fricjax.identify import IdentifySettings
+from fricjax.output_error import output_error_residual
 from fricjax.problem import build_problem
 
 
@@ -48,6 +59,61 @@ def test_delta_bic_is_the_ratio_less_the_parameters_penalty() -> None:
     assert lr == 100.0 and dbic == pytest.approx(100.0 - 2 * math.log(1000))
     # a fit ending above the base (LM's tolerance) is no evidence against it
     assert _judge_numbers(500.0, SimpleNamespace(cost=500.5), 2, 1000, 50)[0] == 0.0
+
+
+def test_the_score_is_the_drop_of_one_gauss_newton_step_of_the_nested_model() -> None:
+    # S must equal min_b |r + J_b·b|² − min_(b,c) |r + J_b·b + C·c|² exactly (linear algebra);
+    # a base column duplicated (a parameter the data do not determine) changes nothing
+    rng = np.random.default_rng(0)
+    m, q, k = 80, 6, 2
+    jb, c, r = rng.normal(size=(m, q)), rng.normal(size=(m, k)), rng.normal(size=m)
+    full = np.concatenate([jb, c], axis=1)
+    drop = np.sum(np.linalg.lstsq(jb, r, rcond=None)[1]) - np.sum(
+        np.linalg.lstsq(full, r, rcond=None)[1]
+    )
+    s = score_statistic(r, base_basis(jb), c)
+    assert s == pytest.approx(drop, rel=1e-10)
+    twice = base_basis(np.concatenate([jb, jb[:, :1]], axis=1))
+    assert score_statistic(r, twice, c) == pytest.approx(drop, rel=1e-10)
+    # a candidate column inside the base's span has no score of its own
+    assert score_statistic(r, base_basis(jb), jb[:, :1] * 3.0) < 1e-20
+
+
+def test_the_score_of_a_term_that_is_not_there_follows_chi2() -> None:
+    # r = J_b·b + noise of unit variance: S over k columns is χ²_k, so p < α at rate α
+    # (4000 draws: within 4 binomial errors)
+    rng = np.random.default_rng(1)
+    m, q, k, draws, alpha = 60, 5, 2, 4000, 0.05
+    jb, c = rng.normal(size=(m, q)), rng.normal(size=(m, k))
+    basis = base_basis(jb)
+    r = jb @ rng.normal(size=(q, draws)) + rng.normal(size=(m, draws))
+    s = np.array([score_statistic(r[:, i], basis, c) for i in range(draws)])
+    rate = np.mean(stats.chi2.sf(s, k) < alpha)
+    assert abs(rate - alpha) < 4 * math.sqrt(alpha * (1 - alpha) / draws)
+
+
+def test_the_screen_passes_nothing_on_the_twin_at_its_true_parameters(twin_problem) -> None:
+    # the bundled twin holds none of the catalogue's effects: at the truth (segment states
+    # from the record), no candidate's score reaches the judge's per-candidate limit α/C
+    sup = Superset.build(twin_problem)
+    ev = record_noise(twin_problem)
+    oe = DiagnoseSettings().output_error(ev)
+    truth = {
+        **sup.problem.spec.as_dict(),
+        **twin_problem.spec.as_dict(twin_problem.theta(PAPER_TRUTH)),
+    }
+    setup = output_error_residual(sup.model(()), truth, oe)
+    S = setup.seg.S
+    fit = SimpleNamespace(params=truth, states_x=setup.x0[-2 * S : -S], states_v=setup.x0[-S:])
+    base = Fitted(sup, (), fit)  # type: ignore[arg-type]
+    band = near_rest_band(twin_problem, ev.sigma_x)
+    todo = [(e, starts(base, e, band, 2)) for e in remaining(base)]
+    scores = screen(base, todo, oe, ev.nu)
+    assert [s.effect for s in scores] == [e for e, _ in todo]
+    assert all(s.score >= 0 and s.p_value > 0.01 / len(scores) for s in scores)
+    # one direction per amplitude: the harmonic and the periodic force have two
+    k = {s.effect: s.k for s in scores}
+    assert k["extra_harmonic"] == 2 and k["stribeck"] == 1
 
 
 @pytest.mark.slow  # a 0.5 s twin simulated at 16 sub-steps, and the ranking compiled
