@@ -131,7 +131,7 @@ class Superset:
         params = []
         for q in spec.params:
             if q.name in pinned and q.free:
-                up = q.init + max(4.0 * float(np.spacing(q.init)), _PIN)
+                up = q.init + max(4.0 * abs(float(np.spacing(q.init))), _PIN)
                 q = replace(q, lower=q.init, upper=up)
             params.append(q)
         return replace(self.problem, spec=replace(spec, params=tuple(params)))

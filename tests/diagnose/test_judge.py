@@ -202,3 +202,21 @@ def test_the_superset_with_every_term_pinned_is_the_base_model(twin_problem) -> 
     assert width < 1e-8 * (sup.problem.spec["harm_A"].upper - sup.problem.spec["harm_A"].lower)
     assert sup.n_free(()) == twin_problem.spec.n_free
     assert sup.n_free(("stribeck",)) == twin_problem.spec.n_free + 2
+
+
+def test_a_pinned_parameter_keeps_an_open_box_wherever_its_null_lies(twin_problem) -> None:
+    # the collapsed box [null, null + width] must stay open for a negative null too (a
+    # place on an axis that runs below zero): a closed box has no sine transform, and the
+    # whole output-error fit would stop at its start
+    from dataclasses import replace
+
+    sup = Superset.build(twin_problem)
+    spec = sup.problem.spec
+    params = tuple(
+        replace(q, init=-0.0100182, lower=-0.05, upper=0.05) if q.name == "bump_x0" else q
+        for q in spec.params
+    )
+    sup = replace(sup, problem=replace(sup.problem, spec=replace(spec, params=params)))
+    pinned = sup.model(()).spec
+    assert all(q.upper > q.lower for q in pinned.params if q.free)
+    assert pinned["bump_x0"].lower == -0.0100182
