@@ -85,10 +85,12 @@ class DiagnoseSettings:
         Kass & Raftery's scale (posterior odds above 150:1 at equal priors). It guards the
         long records where p alone would pass effects too small to matter.
     max_terms: most terms named (forward selection stops earlier when none passes).
-    n_starts: grid starts per candidate's nonlinear parameters (:mod:`~fricjax.diagnose.
-        judge`): each is one output-error fit; the catalogue's grids are spaced so that LM
-        from the best point reaches its peak, the second guards against a ranking bent by
-        the equation error it is taken from.
+    n_starts: grid points per candidate's nonlinear parameters that are scored in output
+        error (:func:`~fricjax.diagnose.judge.screen`): the best local maxima of the cheap
+        equation-error ranking, the second guarding against a ranking bent by the equation
+        error it is taken from. The refit starts from the best-scored point only: the score
+        is the judge's own metric, and the catalogue's grids are spaced so that LM from the
+        best point reaches its peak.
     heldout: fraction of the record the split check holds out. 0.3 leaves the training part
         more than twice the unknowns of a 0.27 s record's model (heldout.too_short) and the
         test part long enough (≥ 80 samples at 1 kHz) for its cost to be a χ² of many
@@ -385,7 +387,7 @@ def decide(
                     continue
                 clock.note(f"output-error fit of {sc.effect}")
                 began = clock.elapsed()
-                fits += fit_candidates(current, [(sc.effect, sc.starts)], oe, evidence.nu)
+                fits += fit_candidates(current, [(sc.effect, sc.starts[:1])], oe, evidence.nu)
                 longest = max(longest, clock.elapsed() - began)
         limit = settings.alpha / len(cands)
         passing = sorted(
