@@ -74,9 +74,9 @@ Under ``vmap`` (parameter batches, the output error's segments) a ``lax.cond`` o
 predicate would become a select that evaluates both branches. The predicates are therefore
 reduced over the batch first (:func:`_for_all_members`, a ``custom_vmap``): the machinery is
 skipped when no member needs it, and otherwise runs for all (it is right for idle members
-too). Forward tangents (``jax.linearize`` then ``vmap`` over tangent directions, as the
-output error does) keep the branch: the predicate is a primal value, the same for every
-tangent. Compile time is unchanged (each part is traced once, as before).
+too). Forward tangents (``jax.jvp`` vmapped over tangent directions, as the output error
+does) keep the branch: the predicate is a primal value, the same for every tangent, and
+reduced over the batch it stays one branch.
 """
 
 from __future__ import annotations
