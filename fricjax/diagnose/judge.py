@@ -467,6 +467,12 @@ def _columns(fn: EquationError, thetas: Float[Array, "B d"]) -> Float[Array, "B 
     return jax.vmap(fn)(thetas)
 
 
+@eqx.filter_jit
+def _jacobian(fn: EquationError, theta: Float[Array, " d"]) -> Float[Array, "n d"]:
+    """Equation-error Jacobian [N per parameter unit] at ``theta``."""
+    return jax.jacfwd(fn)(theta)
+
+
 def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[dict[str, float]]:
     """Up to ``n_starts`` grid points of ``effect``'s nonlinear parameters, the best local
     maxima of its equation-error score at ``current``'s optimum (module docstring); ``[{}]``
@@ -496,7 +502,7 @@ def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[
     cols = np.stack([(r[j * g : (j + 1) * g] - r0) / step[q] for j, q in enumerate(lin, 1)], -1)
     # the current model's own columns, projected off: what it absorbs is no score
     own = [names.index(q) for q in current.problem.spec.free_names if q not in _pinned(current)]
-    jac = np.asarray(jax.jacfwd(sup.problem.residual_fn)(jnp.asarray(theta0)))[keep][:, own]
+    jac = np.asarray(_jacobian(sup.problem.residual_fn, jnp.asarray(theta0)))[keep][:, own]
     qb, _ = np.linalg.qr(jac)
     res = r0[0] - qb @ (qb.T @ r0[0])
     cols = cols - np.einsum("nk,gkj->gnj", qb, np.einsum("nk,gnj->gkj", qb, cols))
