@@ -226,12 +226,8 @@ def test_jacobian_along_directions_is_the_whole_one_on_their_columns(open_loop):
     dirs[[0, 1], chosen] = 1.0
     some = eqx.tree_at(lambda m: m.directions, every, jnp.asarray(dirs))
     x = jnp.asarray(setup.x0) + 1e-4  # off the record: every defect row is non-zero
-    (r_all, j_all), (r_some, j_some) = (
-        np.asarray(a)
-        for a in eqx.filter_jit(lambda a, b, z: (a.value_and_jacobian(z), b.value_and_jacobian(z)))(
-            every, some, x
-        )
-    )
+    both = eqx.filter_jit(lambda a, b, z: (a.value_and_jacobian(z), b.value_and_jacobian(z)))
+    (r_all, j_all), (r_some, j_some) = jax.device_get(both(every, some, x))
     assert j_some.shape == j_all.shape == (problem.n + 2 * (S - 1), P + 2 * S)
     np.testing.assert_array_equal(r_some, r_all)
     others = [i for i in range(P) if i not in chosen]
@@ -285,7 +281,9 @@ def test_a_fit_of_the_same_structure_and_shape_is_neither_traced_nor_compiled_ag
     open_loop, backend_compiles
 ):
     """New start, new data of the same shape and other fixed values reuse the program of
-    the fixture's fit: no trace, no XLA compilation (the Jacobian at the optimum included)."""
+    the fixture's fit: no trace, no XLA compilation (the Jacobian at the optimum included).
+    A fit that fixes one more parameter keeps the fixture's 4 Jacobian directions by
+    passing ``n_directions`` (its own default would be 3: another program)."""
     problem, fit = open_loop
     settings = OutputErrorSettings(segments=3)
     traces = TRACES.copy()
@@ -295,7 +293,8 @@ def test_a_fit_of_the_same_structure_and_shape_is_neither_traced_nor_compiled_ag
         "new data": (replace(problem, x=noisier), START),
         "Fc fixed": (replace(problem, spec=problem.spec.with_fixed({"Fc": 21.0})), START),
     }
-    fits = {k: fit_output_error(p, s, settings) for k, (p, s) in runs.items()}
+    n_dirs = problem.spec.n_free
+    fits = {k: fit_output_error(p, s, settings, n_directions=n_dirs) for k, (p, s) in runs.items()}
     assert TRACES == traces and backend_compiles == []
     # and they are fits: the same optimum from another start, another one on other data
     # (10 µm more noise moves the mass by ~σ, not by its 3-σ tolerance), Fc held at 21 N
@@ -321,7 +320,9 @@ def test_batch_rows_equal_the_fits_whose_spec_fixes_their_pinned_parameters(open
     free = np.array([[q not in pin for q in spec.free_names] for pin in pins])
     rows = fit_output_error_batch(problem, starts, free, settings)
     for pin, row in zip(pins, rows, strict=True):
-        single = fit_output_error(replace(problem, spec=spec.with_fixed(pin)), START, settings)
+        fixed = replace(problem, spec=spec.with_fixed(pin))
+        # the batch's K (4): one program for the three fixed patterns
+        single = fit_output_error(fixed, START, settings, n_directions=spec.n_free)
         assert row.names == single.names and row.success == single.success
         assert row.cost == pytest.approx(single.cost, rel=1e-6)
         np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
@@ -444,7 +445,7 @@ def test_batch_rows_on_the_twin_equal_fits_with_fixed_parameters(twin_problem):
     rows = fit_output_error_batch(twin_problem, starts, free)
     for pin, row in zip(pins, rows, strict=True):
         fixed = replace(twin_problem, spec=spec.with_fixed(pin))
-        single = fit_output_error(fixed, spec.as_dict(start))
+        single = fit_output_error(fixed, spec.as_dict(start), n_directions=spec.n_free)
         assert row.names == single.names and row.n_steps == single.n_steps
         assert row.cost == pytest.approx(single.cost, rel=1e-6)
         np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
