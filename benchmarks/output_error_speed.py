@@ -32,7 +32,8 @@ every term pinned. Three ways of that fit, B = 1:
 
 For each: the fit cold, its LM steps, the fit warm and the warm time per LM step, and the
 Jacobian alone (:func:`~fricjax.output_error.jacobian_at` at the start, mean of 20 calls);
-the warm figures are the best of three rounds that interleave the three ways.
+the warm figures are the best of ``--rounds`` (3) rounds that interleave the three ways.
+Case ``tangents_1s``: the same on the 1 s twin.
 
 Each is timed cold (the first call in this process: tracing and XLA compilation included;
 no persistent compilation cache) and warm (the same call again). Wall and process CPU
@@ -60,9 +61,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "output_error_speed.md"
 CASES = {"twin_0.272": 0.272, "twin_1s": 1.0}
-TANGENTS = "tangents"
+#: the tangents' comparison (module docstring), by case: the record it runs on
+TANGENTS = {"tangents": "twin_0.272", "tangents_1s": "twin_1s"}
 JACOBIAN_CALLS = 20
-ROUNDS = 3
 #: Seven catalogue terms the simulator can integrate (pointwise forces, no state).
 TERMS = (
     "stribeck",
@@ -167,7 +168,7 @@ def run_case(case: str, timer: Timer) -> dict[str, Any]:
     return out
 
 
-def run_tangents(timer: Timer) -> dict[str, Any]:
+def run_tangents(case: str, timer: Timer, rounds: int) -> dict[str, Any]:
     """The twin's superset base fitted three ways (module docstring, case ``tangents``)."""
     import equinox as eqx
     import jax
@@ -182,7 +183,7 @@ def run_tangents(timer: Timer) -> dict[str, Any]:
         output_error_residual,
     )
 
-    record = problems("twin_0.272")[0]
+    record = problems(TANGENTS[case])[0]
     problem = Superset.build(record).model(())
     spec = problem.spec
     settings = OutputErrorSettings(segment_s=SEGMENT_S)
@@ -199,6 +200,7 @@ def run_tangents(timer: Timer) -> dict[str, Any]:
     theta = jnp.asarray(setup.x0)
     keep = {"all P": free[0], "free only": free[0], "judge today": np.ones(spec.n_free, bool)}
     out: dict[str, Any] = {"n": problem.n, "P": P, "segments": setup.seg.S, "ways": {}}
+    out["rounds"] = rounds
     jacobians: dict[str, Callable[[], None]] = {}
     for way, (k, fit) in ways.items():
         print(f"  {way} (K = {k}), cold ...", file=sys.stderr, flush=True)
@@ -218,10 +220,10 @@ def run_tangents(timer: Timer) -> dict[str, Any]:
 
         jacobians[way] = calls
         out["ways"][way] = r
-    # warm: the ways interleaved, best of ROUNDS, so that a burst of the others' load on the
+    # warm: the ways interleaved, best of the rounds, so that a burst of the others' load on the
     # shared cores does not land on one way only
-    for i in range(ROUNDS):
-        print(f"  warm round {i + 1} of {ROUNDS} ...", file=sys.stderr, flush=True)
+    for i in range(rounds):
+        print(f"  warm round {i + 1} of {rounds} ...", file=sys.stderr, flush=True)
         for way, (_, fit) in ways.items():
             r = out["ways"][way]
             for key, run in (("warm", fit), ("jacobian", jacobians[way])):
@@ -231,14 +233,14 @@ def run_tangents(timer: Timer) -> dict[str, Any]:
     return out
 
 
-def tangents_report(r: dict[str, Any]) -> list[str]:
+def tangents_report(case: str, r: dict[str, Any]) -> list[str]:
     ways = r["ways"]
     lines = [
-        "## Tangents: every parameter against the fitted ones (the twin's superset base)",
+        f"## Tangents: every parameter against the fitted ones ({TANGENTS[case]}'s superset base)",
         "",
         f"n = {r['n']}, {r['segments']} segments of {SEGMENT_S} s, P = {r['P']} parameters. "
         "Seconds, wall / process CPU; warm: best of "
-        f"{ROUNDS} interleaved rounds; per LM step = the warm fit's time over its steps; "
+        f"{r['rounds']} interleaved rounds; per LM step = the warm fit's time over its steps; "
         f"Jacobian = one `jacobian_at` call, warm, mean of {JACOBIAN_CALLS}.",
         "",
         "| way | K | cold fit | warm fit | LM steps | per LM step | Jacobian | cost [σ_x²] |",
@@ -271,7 +273,7 @@ def tangents_report(r: dict[str, Any]) -> list[str]:
 
 def report(
     results: dict[str, dict[str, Any]],
-    tangents: dict[str, Any] | None,
+    tangents: dict[str, dict[str, Any]],
     machine: str,
     end_load: str,
     argv: str,
@@ -291,8 +293,8 @@ def report(
     ]
     if results:
         lines += loop_batch_report(results)
-    if tangents is not None:
-        lines += tangents_report(tangents)
+    for case, r in tangents.items():
+        lines += tangents_report(case, r)
     return "\n".join(lines) + "\n"
 
 
@@ -336,12 +338,13 @@ def loop_batch_report(results: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def main() -> int:
-    known = [*CASES, TANGENTS]
+    known = [*CASES, *TANGENTS]
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
         "--cases", default=",".join(known), help="comma-separated, from: " + ", ".join(known)
     )
     ap.add_argument("--report", type=Path, default=OUT)
+    ap.add_argument("--rounds", type=int, default=3, help="warm rounds of the tangents' cases")
     args = ap.parse_args()
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in cases if c not in known]
@@ -361,12 +364,12 @@ def main() -> int:
     float(jnp.ones(3).sum())  # start the backend before the first timed call
     timer = Timer()
     results: dict[str, dict[str, Any]] = {}
-    tangents: dict[str, Any] | None = None
+    tangents: dict[str, dict[str, Any]] = {}
     argv = " ".join(["python", "benchmarks/output_error_speed.py", *sys.argv[1:]])
     for case in cases:
         print(f"{case} ...", file=sys.stderr, flush=True)
-        if case == TANGENTS:
-            tangents = run_tangents(timer)
+        if case in TANGENTS:
+            tangents[case] = run_tangents(case, timer, max(args.rounds, 1))
         else:
             results[case] = run_case(case, timer)
             cold = {way: results[case][f"{way}_cold"]["wall"] for way in ("loop", "batch")}
