@@ -80,8 +80,9 @@ Cost. ``substeps = 1`` by default: one RK4 step per sample was measured 4.7e-8 m
 dynamics. The Jacobian is assembled from K + 2 forward tangents by
 :meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not P + 2S, with K
 the parameters the fit moves (:func:`fit_output_error_batch`; the columns of the fixed
-and masked ones are zero). The tangents are nearly all of an LM step's time, and a
-superset model's base fit moves about half of its parameters (twin: 26 of 48).
+and masked ones are zero): a superset model's base fit moves about half of its
+parameters. What that saves per LM step is measured in docs/output-error.md ("The
+Jacobian along the fitted parameters only").
 
 Compilation and batching. The residual runs over all P parameters of the model, the
 fixed ones included, and a fit holds the components it does not move at their values by
