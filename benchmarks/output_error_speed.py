@@ -23,8 +23,8 @@ fit of the superset model (``Superset.build(problem).model(())``, as
 every term pinned. Three ways of that fit, B = 1:
 
 - **all P**: the base's 26 parameters fitted (the terms masked), ``n_directions = P``: a
-  tangent for each of the 48 parameters (22 of them zero rows), the cost of every fit
-  before the tangents followed the free parameters only;
+  tangent for each of the 48 parameters (22 of them zero rows), as many as the residual's
+  default directions (the identity) propagate;
 - **free only**: the same fit with the default K = 26 tangents: the same fit, to rounding;
 - **judge today**: :func:`~fricjax.output_error.fit_output_error` on the superset base as
   ``judge.fit_base`` calls it (the terms pinned by a collapsed box, so free in the spec:
