@@ -77,18 +77,23 @@ models without it (the seed's harmonic drive, eq. 4) by their drive function of 
 
 Cost. ``substeps = 1`` by default: one RK4 step per sample was measured 4.7e-8 m off a
 16-sub-step reference over the 2 s twin (500× below its noise); raise it for stiffer
-dynamics. The Jacobian is assembled from P + 2 forward tangents by
-:meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not P + 2S.
+dynamics. The Jacobian is assembled from K + 2 forward tangents by
+:meth:`OutputError.value_and_jacobian` (the residual's custom JVP), not P + 2S, with K
+the parameters the fit moves (:func:`fit_output_error_batch`; the columns of the fixed
+and masked ones are zero): a superset model's base fit moves about half of its
+parameters. What that saves per LM step is measured in docs/output-error.md ("The
+Jacobian along the fitted parameters only").
 
 Compilation and batching. The residual runs over all P parameters of the model, the
 fixed ones included, and a fit holds the components it does not move at their values by
 a mask (:func:`fit_output_error_batch`). What is static is only the model, the parameter
-names, the record's shape, the segmentation and the settings; the data, the start, the
-fixed values and the mask are traced. One program (LM and the Jacobian at its end point)
-is therefore compiled per (model, names, shapes, settings, B) and serves every record of
-that shape, every start and every choice of fixed parameters; B fits of one model (a
-superset model: a base and several extra terms, each term pinned at its null where it is
-not tested) run as one vmapped program (docs/output-error.md, "Speed and batching").
+names, the record's shape, the segmentation, the settings and K; the data, the start,
+the fixed values, the mask and the Jacobian's directions are traced. One program (LM and
+the Jacobian at its end point) is therefore compiled per (model, names, shapes, settings,
+B, K) and serves every record of that shape, every start and every choice of fixed
+parameters; B fits of one model (a superset model: a base and several extra terms, each
+term pinned at its null where it is not tested) run as one vmapped program
+(docs/output-error.md, "Speed and batching").
 
 Box. θ stays in the config's box. ``ξ_s`` is initialised at the recorded ``x_{k_s}`` and
 kept within ``±(20·σ_x + 0.01·range(x))``: the record is the true position plus noise of
@@ -307,7 +312,13 @@ class OutputError(eqx.Module):
     (``names``, fixed ones included: which of them a fit moves is the caller's mask, see
     :func:`fit_output_error_batch`). Data and parameter values are array leaves and only
     the model, the names, the shapes and the integrator settings are static, so one
-    compilation serves every record of the same shape and every choice of fixed values."""
+    compilation serves every record of the same shape and every choice of fixed values.
+
+    ``directions`` [K, P]: the directions of θ along which :meth:`value_and_jacobian`
+    differentiates, orthonormal rows or zero rows (padding); a fit passes unit vectors of
+    the parameters it moves. They are a traced leaf: only K is static, so one program
+    serves every choice of K directions. Default (:func:`output_error_residual`): the
+    identity, every parameter."""
 
     model: Model = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
@@ -319,6 +330,7 @@ class OutputError(eqx.Module):
     x_scale: Float[Array, ""]
     v_to_x: Float[Array, ""]
     weight: Float[Array, ""]  # w·√L
+    directions: Float[Array, "K P"]
     substeps: int = eqx.field(static=True)
     hold: str = eqx.field(static=True)
 
@@ -369,45 +381,52 @@ class OutputError(eqx.Module):
     def value_and_jacobian(
         self, theta_aug: Float[Array, " D"]
     ) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
-        """``r_aug`` and its Jacobian [n + 2(S − 1), d + 2S] (d = P, every parameter), using
-        its block structure.
+        """``r_aug`` and its Jacobian along the directions, using its block structure:
+        ``[(∂r_aug/∂θ)·DᵀD | ∂r_aug/∂ξ | ∂r_aug/∂ν]`` [n + 2(S − 1), P + 2S], D =
+        ``directions`` [K, P]. With D the identity (the default) it is the whole Jacobian;
+        with D the unit rows of the parameters a fit moves, the other parameters' columns
+        are exactly zero and the fitted ones are the whole Jacobian's.
 
-        Segment ``s`` depends on θ and on its own ``(ξ_s, ν_s)`` only, so d + 2 forward
-        tangents of the trajectories give everything: one per θ component, one with
-        ``dξ = (1, …, 1)`` and one with ``dν = (1, …, 1)`` (each segment picks up its own
-        start's sensitivity; the segments' rows do not overlap). The defect rows add the
-        known −1 of ``ξ_{s+1}``, ``ν_{s+1}``. Plain forward mode would need d + 2S tangents
-        through every segment (EMPS: 102 instead of 6).
+        Segment ``s`` depends on θ and on its own ``(ξ_s, ν_s)`` only, so K + 2 forward
+        tangents of the trajectories give everything: one per direction of θ (a zero row
+        gives a zero tangent), one with ``dξ = (1, …, 1)`` and one with ``dν = (1, …, 1)``
+        (each segment picks up its own start's sensitivity; the segments' rows do not
+        overlap). The defect rows add the known −1 of ``ξ_{s+1}``, ``ν_{s+1}``. Plain
+        forward mode would need P + 2S tangents through every segment (EMPS: 102 instead
+        of 6).
         """
-        d, S = self.n_params, self.n_segments
+        K, S = self.directions.shape[0], self.n_segments
         theta, xi, nu = self.split(theta_aug)
 
         def traj(th: Array, x0: Array, v0: Array) -> tuple[Array, Array]:
             return self.trajectories(jnp.concatenate([th, x0, v0]))
 
-        eye = jnp.eye(d + 2, dtype=theta.dtype)
-        dth = eye[:, :d]
-        dxi = jnp.broadcast_to(eye[:, d : d + 1], (d + 2, S))
-        dnu = jnp.broadcast_to(eye[:, d + 1 : d + 2], (d + 2, S))
+        dirs = self.directions.astype(theta.dtype)
+        dth = jnp.concatenate([dirs, jnp.zeros((2, theta.shape[0]), theta.dtype)])
+        eye = jnp.eye(K + 2, dtype=theta.dtype)
+        dxi = jnp.broadcast_to(eye[:, K : K + 1], (K + 2, S))
+        dnu = jnp.broadcast_to(eye[:, K + 1 : K + 2], (K + 2, S))
         # vmapped JVPs rather than jax.linearize + vmap: linearize's partial evaluation of
         # the simulator's nested loops traces and compiles about 3x longer, and its
         # linear program runs about 2x slower than the batched forward pass (twin superset)
         (xs, vs), (tx, tv) = jax.vmap(lambda a, b, c: jax.jvp(traj, (theta, xi, nu), (a, b, c)))(
             dth, dxi, dnu
-        )  # [d + 2, S, L + 1] each
+        )  # [K + 2, S, L + 1] each
         xs, vs = xs[0], vs[0]
         scale = 1.0 / self.x_scale
         # sample rows: θ columns, then the own segment's ξ and ν columns
-        a = tx[:, self.seg, self.pos] * scale  # [d + 2, n]
+        a = tx[:, self.seg, self.pos] * scale  # [K + 2, n]
         own = jax.nn.one_hot(self.seg, S, dtype=theta.dtype)  # [n, S]
-        j_samples = jnp.concatenate([a[:d].T, own * a[d][:, None], own * a[d + 1][:, None]], 1)
+        j_samples = jnp.concatenate(
+            [a[:K].T @ dirs, own * a[K][:, None], own * a[K + 1][:, None]], 1
+        )
         # defect rows: d(end of s)/d(θ, ξ_s, ν_s) minus the start of s + 1
         diag, upper = jnp.eye(S - 1, S, dtype=theta.dtype), jnp.eye(S - 1, S, 1, dtype=theta.dtype)
 
         def defect_rows(t_end: Array, which: int, factor: Array) -> Array:
-            start_x = diag * t_end[d][:, None] - (upper if which == 0 else 0.0)
-            start_v = diag * t_end[d + 1][:, None] - (upper if which == 1 else 0.0)
-            return factor * jnp.concatenate([t_end[:d].T, start_x, start_v], 1)
+            start_x = diag * t_end[K][:, None] - (upper if which == 0 else 0.0)
+            start_v = diag * t_end[K + 1][:, None] - (upper if which == 1 else 0.0)
+            return factor * jnp.concatenate([t_end[:K].T @ dirs, start_x, start_v], 1)
 
         w = self.weight * scale
         jac = jnp.concatenate(
@@ -546,6 +565,7 @@ def output_error_residual(
         x_scale=jnp.asarray(x_scale, dtype=jnp.float64),
         v_to_x=jnp.asarray(seg.duration, dtype=jnp.float64),
         weight=jnp.asarray(settings.defect_weight * math.sqrt(seg.L), dtype=jnp.float64),
+        directions=jnp.eye(len(spec.names), dtype=jnp.float64),
         substeps=settings.substeps,
         hold=settings.hold,
     )
@@ -619,41 +639,46 @@ def _check_problem(problem: Problem) -> None:
         raise FricjaxError(f"{where(src, '/u')}: all zero; the measured_input model has no drive")
 
 
-#: Traces of the batched fit program, by (model name, B, P + 2S, n): a numerical record
-#: of when :func:`fit_output_error_batch` compiles (a warm call adds nothing here).
-TRACES: Counter[tuple[str, int, int, int]] = Counter()
+#: Traces of the batched fit program, by (model name, B, P + 2S, n, K): a numerical
+#: record of when :func:`fit_output_error_batch` compiles (a warm call adds nothing here).
+TRACES: Counter[tuple[str, int, int, int, int]] = Counter()
 
 
 def _fit_rows(
     residual: OutputError,
     x0s: Float[Array, "B D"],
     free: Bool[Array, "B D"],
+    directions: Float[Array, "B K P"],
     lower: Float[Array, "B D"],
     upper: Float[Array, "B D"],
     settings: RefineSettings,
 ) -> tuple[Refined, Float[Array, "B m"], Float[Array, "B m D"]]:
-    """LM of every row (components outside ``free[b]`` pinned at ``x0s[b]``), then r_aug
-    and its Jacobian at each end point: one program, the rows vmapped (the batched
+    """LM of every row (components outside ``free[b]`` pinned at ``x0s[b]``, the Jacobian
+    taken along ``directions[b]``, which span the row's free parameters), then r_aug and
+    its Jacobian at each end point: one program, the rows vmapped (the batched
     ``while_loop`` runs until the last row stops; each row keeps its own end point, step
     count and convergence flag)."""
-    TRACES[(residual.model.name, *x0s.shape, residual.x.shape[0])] += 1
+    TRACES[(residual.model.name, *x0s.shape, residual.x.shape[0], directions.shape[1])] += 1
 
-    def one(x0: Array, keep: Array, lo: Array, hi: Array) -> tuple[Refined, Array, Array]:
-        out = _refine_one(_Pinned(residual, keep, x0), x0, lo, hi, settings)
+    def one(
+        x0: Array, keep: Array, dirs: Array, lo: Array, hi: Array
+    ) -> tuple[Refined, Array, Array]:
+        res = eqx.tree_at(lambda m: m.directions, residual, dirs)
+        out = _refine_one(_Pinned(res, keep, x0), x0, lo, hi, settings)
         # the pinned components come back from the box transform's round trip: restore them
         x = jnp.where(keep, out.x, x0)
         # through the residual's custom JVP, as the LM linearises it: that reuses the LM's
         # trace of jacobian_at (a direct call would trace it again, in another context);
         # J·I is J exactly
-        r, lin = jax.linearize(partial(_call, residual), x)
+        r, lin = jax.linearize(partial(_call, res), x)
         jac = jax.vmap(lin, out_axes=1)(jnp.eye(x.shape[0], dtype=x.dtype))
         return out._replace(x=x), r, jac
 
     if x0s.shape[0] == 1:
         # vmap would turn the LM's branches into selects that evaluate both sides
-        out, r, jac = one(x0s[0], free[0], lower[0], upper[0])
+        out, r, jac = one(x0s[0], free[0], directions[0], lower[0], upper[0])
         return jax.tree.map(lambda a: a[None], (out, r, jac))
-    return jax.vmap(one)(x0s, free, lower, upper)
+    return jax.vmap(one)(x0s, free, directions, lower, upper)
 
 
 # compile time is most of a cold fit's time, and the classic emitter saves a fifth of it
@@ -666,14 +691,20 @@ def fit_output_error_batch(
     free: Bool[np.ndarray, "B d"] | None = None,
     settings: OutputErrorSettings | None = None,
     states: tuple[np.ndarray, np.ndarray] | None = None,
+    n_directions: int | None = None,
 ) -> list[OutputErrorFit]:
     """B output-error fits of ONE model as one compiled program (:func:`fit_output_error`
     row by row): row ``b`` starts from ``starts[b]`` (the spec's free parameters, in
     ``problem.spec.free_names`` order) and fits those with ``free[b]`` set (default: all),
     the others pinned at ``starts[b]``, together with the segment states.
 
+    The Jacobian is taken along K directions per row (:class:`OutputError`), the unit
+    vectors of the row's fitted parameters padded with zero rows: K + 2 forward tangents
+    per Jacobian instead of P + 2 (P: every parameter of the model, fixed and pinned ones
+    included), at the same columns for the fitted parameters.
+
     The program is compiled once per (model, parameter names, record shape, segmentation,
-    B, settings): which parameters are pinned, at what values, and the data are traced.
+    B, K, settings): which parameters are pinned, at what values, and the data are traced.
     So a superset model (a base and several extra terms, each term's amplitude pinned at
     its null 0 where it is not tested) fits every candidate × start in one program, and a
     row equals the fit of the model whose spec fixes its pinned parameters (same LM steps:
@@ -685,6 +716,9 @@ def fit_output_error_batch(
         free: [B, d] bool, the parameters each row fits; None: all of them.
         settings: :class:`OutputErrorSettings`.
         states: segment states to start from, (ξ, ν) of shape [S] (every row) or [B, S].
+        n_directions: K, at least the largest count of fitted parameters over the rows
+            (the default) and at most P; a caller that fits several models of one superset
+            passes one K (e.g. the largest model's count) so that they share one program.
 
     Returns:
         B :class:`OutputErrorFit`, in row order.
@@ -713,6 +747,7 @@ def fit_output_error_batch(
     x0s[:, :P][:, spec_free] = np.clip(x0, spec.lower, spec.upper)
     keep = np.repeat(setup.free[None], B, axis=0)
     keep[:, :P][:, spec_free] = mask
+    directions = _directions(keep[:, :P], n_directions, src)
     if states is not None:
         xi, nu = (np.asarray(a, dtype=np.float64) for a in states)
         if xi.shape[-1:] != (S,) or nu.shape[-1:] != (S,) or xi.ndim > 2 or nu.ndim > 2:
@@ -728,13 +763,34 @@ def fit_output_error_batch(
     lower = np.where(keep, setup.lower, x0s - 1.0)
     upper = np.where(keep, setup.upper, x0s + 1.0)
     out, r_opt, jac = _fit_rows_jit(
-        setup.residual, x0s, keep, lower, upper, _checked(settings.refine_settings())
+        setup.residual, x0s, keep, directions, lower, upper, _checked(settings.refine_settings())
     )
     out, r_opt, jac = jax.device_get((out, r_opt, jac))
     return [
         _row_fit(problem, setup, keep[b], lower[b], upper[b], out, b, r_opt[b], jac[b])
         for b in range(B)
     ]
+
+
+def _directions(
+    keep: Bool[np.ndarray, "B P"], n_directions: int | None, source: object
+) -> Float[np.ndarray, "B K P"]:
+    """Row b: the unit vectors of the parameters with ``keep[b]`` set, in order, then zero
+    rows up to K (default: the largest count over the rows)."""
+    B, P = keep.shape
+    counts = keep.sum(axis=1)
+    need = int(counts.max())
+    K = need if n_directions is None else n_directions
+    if isinstance(K, bool) or not isinstance(K, int | np.integer) or not need <= K <= P:
+        raise FricjaxError(
+            f"{where(source, 'n_directions')}: must be an integer from {need} (the most "
+            f"parameters a row fits) to {P} (every parameter), got {n_directions!r}"
+        )
+    directions = np.zeros((B, int(K), P))
+    for b in range(B):
+        idx = np.flatnonzero(keep[b])
+        directions[b, np.arange(idx.size), idx] = 1.0
+    return directions
 
 
 def _row_fit(
@@ -796,6 +852,7 @@ def fit_output_error(
     start: Mapping[str, float],
     settings: OutputErrorSettings | None = None,
     states: tuple[np.ndarray, np.ndarray] | None = None,
+    n_directions: int | None = None,
 ) -> OutputErrorFit:
     """Minimise E_OE (module docstring) over θ and the segment states by Levenberg–Marquardt
     (:func:`fricjax.refine.refine`'s, sine box transform) from ``start`` (named values, e.g.
@@ -812,7 +869,10 @@ def fit_output_error(
         states: segment states (ξ [S] m, ν [S] m/s) to start from, e.g. those of an
             earlier fit of the same record (``states_x``, ``states_v``); default: the
             record's.
+        n_directions: K tangent directions of the Jacobian (:func:`fit_output_error_batch`);
+            default: the spec's free parameter count.
     """
     spec = problem.spec
     known = {k: float(v) for k, v in start.items() if k in spec}
-    return fit_output_error_batch(problem, spec.flatten(known)[None], None, settings, states)[0]
+    starts = spec.flatten(known)[None]
+    return fit_output_error_batch(problem, starts, None, settings, states, n_directions)[0]

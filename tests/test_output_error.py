@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from fricjax import output_error
 from fricjax.config import load_config, parse_config
 from fricjax.data.recording import Recording
 from fricjax.data.twin import DEFAULT_NOISE_STD, PAPER_TRUTH
@@ -212,6 +213,31 @@ def test_structured_jacobian_equals_forward_mode(open_loop):
     np.testing.assert_allclose(jac, ref, rtol=0, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
 
 
+def test_jacobian_along_directions_is_the_whole_one_on_their_columns(open_loop):
+    """With the unit rows of two parameters and a zero row as directions (K = 3 of P = 5),
+    the structured Jacobian has the whole one's columns for those parameters and for the
+    segment states, and exact zeros for the other parameters; the residual is unchanged."""
+    problem, fit = open_loop
+    setup = output_error_residual(problem, fit.params, OutputErrorSettings(segments=3))
+    every = setup.residual
+    P, S = every.n_params, every.n_segments
+    chosen = [every.names.index("Fc"), every.names.index("mass")]
+    dirs = np.zeros((3, P))
+    dirs[[0, 1], chosen] = 1.0
+    some = eqx.tree_at(lambda m: m.directions, every, jnp.asarray(dirs))
+    x = jnp.asarray(setup.x0) + 1e-4  # off the record: every defect row is non-zero
+    both = eqx.filter_jit(lambda a, b, z: (a.value_and_jacobian(z), b.value_and_jacobian(z)))
+    (r_all, j_all), (r_some, j_some) = jax.device_get(both(every, some, x))
+    assert j_some.shape == j_all.shape == (problem.n + 2 * (S - 1), P + 2 * S)
+    np.testing.assert_array_equal(r_some, r_all)
+    others = [i for i in range(P) if i not in chosen]
+    np.testing.assert_array_equal(j_some[:, others], 0.0)
+    assert np.all(np.abs(j_all[:, others]).max(axis=0) > 0)  # zero by the directions only
+    cols = [*chosen, *range(P, P + 2 * S)]
+    atol = 1e-13 * float(np.max(np.abs(j_all)))
+    np.testing.assert_allclose(j_some[:, cols], j_all[:, cols], rtol=1e-13, atol=atol)
+
+
 def test_continuity_defects_vanish_at_the_optimum(open_loop):
     _, fit = open_loop
     # measured 1.1e-9 m and 4.5e-10 m/s against 1e-5 m of noise: one trajectory
@@ -255,7 +281,9 @@ def test_a_fit_of_the_same_structure_and_shape_is_neither_traced_nor_compiled_ag
     open_loop, backend_compiles
 ):
     """New start, new data of the same shape and other fixed values reuse the program of
-    the fixture's fit: no trace, no XLA compilation (the Jacobian at the optimum included)."""
+    the fixture's fit: no trace, no XLA compilation (the Jacobian at the optimum included).
+    A fit that fixes one more parameter keeps the fixture's 4 Jacobian directions by
+    passing ``n_directions`` (its own default would be 3: another program)."""
     problem, fit = open_loop
     settings = OutputErrorSettings(segments=3)
     traces = TRACES.copy()
@@ -265,7 +293,8 @@ def test_a_fit_of_the_same_structure_and_shape_is_neither_traced_nor_compiled_ag
         "new data": (replace(problem, x=noisier), START),
         "Fc fixed": (replace(problem, spec=problem.spec.with_fixed({"Fc": 21.0})), START),
     }
-    fits = {k: fit_output_error(p, s, settings) for k, (p, s) in runs.items()}
+    n_dirs = problem.spec.n_free
+    fits = {k: fit_output_error(p, s, settings, n_directions=n_dirs) for k, (p, s) in runs.items()}
     assert TRACES == traces and backend_compiles == []
     # and they are fits: the same optimum from another start, another one on other data
     # (10 µm more noise moves the mass by ~σ, not by its 3-σ tolerance), Fc held at 21 N
@@ -291,7 +320,9 @@ def test_batch_rows_equal_the_fits_whose_spec_fixes_their_pinned_parameters(open
     free = np.array([[q not in pin for q in spec.free_names] for pin in pins])
     rows = fit_output_error_batch(problem, starts, free, settings)
     for pin, row in zip(pins, rows, strict=True):
-        single = fit_output_error(replace(problem, spec=spec.with_fixed(pin)), START, settings)
+        fixed = replace(problem, spec=spec.with_fixed(pin))
+        # the batch's K (4): one program for the three fixed patterns
+        single = fit_output_error(fixed, START, settings, n_directions=spec.n_free)
         assert row.names == single.names and row.success == single.success
         assert row.cost == pytest.approx(single.cost, rel=1e-6)
         np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
@@ -309,6 +340,42 @@ def test_batch_rows_equal_the_fits_whose_spec_fixes_their_pinned_parameters(open
         assert warm.cost <= row.cost * (1 + 1e-9)
 
 
+def test_free_only_tangents_give_the_fits_of_every_tangent(open_loop, monkeypatch):
+    """Rows fitted with tangents along their fitted parameters only (K = 4, the default:
+    the most any row fits) end where the same rows fitted with a tangent for each of the
+    P = 5 parameters end (every row's directions the identity, as before directions
+    existed): same LM steps, cost, values and σ. Another set of masks with the same K
+    runs the same program: no trace."""
+    problem, _ = open_loop
+    settings = OutputErrorSettings(segments=3)
+    spec = problem.spec
+    P = len(spec.names)
+
+    def masks(pins: list[dict[str, float]]) -> tuple[np.ndarray, np.ndarray]:
+        starts = np.stack([spec.flatten({**START, **pin}) for pin in pins])
+        return starts, np.array([[q not in pin for q in spec.free_names] for pin in pins])
+
+    starts, free = masks([{}, {"Fc": 21.0}, {"offset": -3.0, "mass": 100.0}])
+    free_only = fit_output_error_batch(problem, starts, free, settings)
+    with monkeypatch.context() as m:
+        m.setattr(output_error, "_directions", lambda keep, *_: np.stack([np.eye(P)] * len(keep)))
+        every = fit_output_error_batch(problem, starts, free, settings)
+    for a, b in zip(free_only, every, strict=True):
+        assert a.names == b.names and a.n_steps == b.n_steps and a.success
+        assert a.cost == pytest.approx(b.cost, rel=1e-9)
+        np.testing.assert_allclose(a.value, b.value, rtol=1e-9)
+        np.testing.assert_allclose(a.std, b.std, rtol=1e-9)
+        np.testing.assert_allclose(a.corr, b.corr, rtol=0, atol=1e-9)
+    # K = P with other masks: the program of `every` (the directions are traced)
+    traces = TRACES.copy()
+    starts, free = masks([{"Fv": 200.0}, {"Fc": 21.0, "Fv": 200.0}, {}])
+    rows = fit_output_error_batch(problem, starts, free, settings, n_directions=P)
+    assert TRACES == traces
+    assert rows[0].params["Fv"] == 200.0 and "Fv" not in rows[0].names
+    assert rows[2].cost < rows[0].cost < rows[1].cost  # each pin costs fit quality
+    assert rows[2].cost == pytest.approx(free_only[0].cost, rel=1e-9)
+
+
 def test_batch_refuses_bad_starts_and_masks_in_one_line(open_loop):
     problem, _ = open_loop
     d = problem.spec.n_free
@@ -319,6 +386,13 @@ def test_batch_refuses_bad_starts_and_masks_in_one_line(open_loop):
     ):
         with pytest.raises(FricjaxError) as err:
             fit_output_error_batch(problem, starts, free)
+        assert msg in str(err.value) and "\n" not in str(err.value)
+    # a row fits 3 parameters, the model has 5 (gain fixed): K outside [3, 5] is refused
+    free = np.array([[True, True, True, False], [True, False, False, False]])
+    for k in (2, 6, 3.0):
+        with pytest.raises(FricjaxError) as err:
+            fit_output_error_batch(problem, np.ones((2, d)), free, n_directions=k)
+        msg = "n_directions: must be an integer from 3 (the most parameters a row fits) to 5"
         assert msg in str(err.value) and "\n" not in str(err.value)
 
 
@@ -371,7 +445,7 @@ def test_batch_rows_on_the_twin_equal_fits_with_fixed_parameters(twin_problem):
     rows = fit_output_error_batch(twin_problem, starts, free)
     for pin, row in zip(pins, rows, strict=True):
         fixed = replace(twin_problem, spec=spec.with_fixed(pin))
-        single = fit_output_error(fixed, spec.as_dict(start))
+        single = fit_output_error(fixed, spec.as_dict(start), n_directions=spec.n_free)
         assert row.names == single.names and row.n_steps == single.n_steps
         assert row.cost == pytest.approx(single.cost, rel=1e-6)
         np.testing.assert_array_less(np.abs(row.value - single.value), 0.01 * single.std)
