@@ -92,7 +92,7 @@ class _StatesOnly(eqx.Module):
     program serves every parameter value): a function of the segment states alone."""
 
     residual: OutputError
-    theta: Float[Array, " d"]
+    theta: Float[Array, " P"]
 
     def __call__(self, states: Float[Array, " s"]) -> Float[Array, " m"]:
         return self.residual(jnp.concatenate([self.theta, states]))
@@ -104,9 +104,10 @@ def fixed_cost(
     """Output-error cost [σ_x²] of ``problem``'s model at ``params``, every model parameter
     fixed: only the segment states are fitted (a held-out simulation, not a refit)."""
     setup = output_error_residual(problem, dict(params), settings)
-    d = problem.spec.n_free
-    fn = _StatesOnly(setup.residual, jnp.asarray(setup.x0[:d]))
-    out = refine(fn, setup.x0[d:], setup.lower[d:], setup.upper[d:], settings.refine_settings())
+    # θ_aug holds every parameter of the model, the fixed ones included, then the states
+    P = len(problem.spec.names)
+    fn = _StatesOnly(setup.residual, jnp.asarray(setup.x0[:P]))
+    out = refine(fn, setup.x0[P:], setup.lower[P:], setup.upper[P:], settings.refine_settings())
     return float(out.cost_after)
 
 

@@ -6,6 +6,7 @@ says so."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -98,3 +99,33 @@ def test_a_refused_candidate_is_unexplained_at_its_place_and_says_why() -> None:
     assert f["effect"] == "unexplained" and "EMS gets worse" in f["explanation"]
     assert f["location"]["position_m"] == [0.1 - 0.02, 0.1 + 0.02]
     assert f["rejected_candidate"]["effect"] == "position_bump"
+
+
+def test_a_held_out_cost_moves_no_parameter_the_spec_fixes(twin_problem) -> None:
+    # the twin's spec fixes mass (its last parameter) and delta: a held-out cost fits the
+    # segment states only, so a 20 % wrong fixed mass must cost more than the right one,
+    # and the right one stays near the noise level (E ≈ n_residual in units of σ_x²)
+    from fricjax.data.twin import PAPER_TRUTH
+    from fricjax.diagnose.evidence import record_noise
+    from fricjax.diagnose.heldout import fixed_cost
+
+    spec = twin_problem.spec
+    assert spec.names[-1] == "mass" and not spec["mass"].free
+    settings = OutputErrorSettings(segment_s=0.05, x_scale=record_noise(twin_problem).sigma_x)
+    truth = spec.as_dict(twin_problem.theta(PAPER_TRUTH))
+    right = fixed_cost(twin_problem, truth, settings)
+    heavy = replace(
+        twin_problem,
+        spec=replace(
+            spec,
+            params=tuple(
+                replace(q, init=q.init * 1.2, lower=q.init * 1.2, upper=q.init * 1.2)
+                if q.name == "mass"
+                else q
+                for q in spec.params
+            ),
+        ),
+    )
+    wrong = fixed_cost(heavy, truth, settings)
+    assert right < 2.0 * twin_problem.n
+    assert wrong > 3.0 * right
