@@ -185,7 +185,12 @@ class Split:
             costs = []
             for m in (before, after):
                 train = record_part(m.problem, a, b)
-                fit = converged(train, m.fit.params, self.settings)
+                fit = converged(
+                    train,
+                    m.fit.params,
+                    self.settings,
+                    n_directions=m.superset.n_directions(before.active),
+                )
                 costs.append(fixed_cost(record_part(m.problem, c, d), fit.params, self.settings))
             return Verdict("split", on, True, 1 - costs[1] / costs[0], costs[0], costs[1])
         return Verdict(

@@ -56,7 +56,7 @@ from fricjax.model.system import Model
 from fricjax.output_error import (
     OutputErrorFit,
     OutputErrorSettings,
-    fit_output_error,
+    fit_output_error_batch,
     jacobian_at,
     output_error_residual,
 )
@@ -136,6 +136,15 @@ class Superset:
             params.append(q)
         return replace(self.problem, spec=replace(spec, params=tuple(params)))
 
+    def n_directions(self, active: Sequence[str]) -> int:
+        """K of every output-error fit of a forward-selection step from base + ``active``:
+        its free parameters and the most any one further term adds, so that the current
+        model, every candidate and every held-out fit of the step share one compiled
+        program (:func:`~fricjax.output_error.fit_output_error_batch`)."""
+        own = self.n_free(active)
+        rest = [self.n_free((*active, e)) for e in self.effects if e not in active]
+        return max([own, *rest])
+
     def n_free(self, active: Sequence[str]) -> int:
         """Free parameters of base + ``active`` (the pinned ones are not free)."""
         own = sum(self.problem.spec[n].free for e in active for n in self.names[e])
@@ -205,6 +214,33 @@ class CandidateFit:
         return self.p_value < limit and self.delta_bic > min_delta_bic
 
 
+def moving(spec: ParamSpec) -> np.ndarray:
+    """[d] bool over ``spec.free_names``: the parameters a fit moves, i.e. those not pinned
+    by :meth:`Superset.model`'s collapsed box. The fit holds the pinned ones by its mask, so
+    its Jacobian takes no tangent along them."""
+    width = spec.upper - spec.lower
+    lower = spec.lower
+    pin = np.maximum(8.0 * np.abs(np.spacing(lower)), 2.0 * _PIN)
+    return np.asarray(width > pin)
+
+
+def _fit(
+    problem: Problem,
+    start: Mapping[str, float],
+    settings: OutputErrorSettings,
+    states: tuple[np.ndarray, np.ndarray] | None,
+    n_directions: int | None,
+) -> OutputErrorFit:
+    """One output-error fit of a superset model from named values, its pinned parameters
+    held by the mask (:func:`moving`), K = ``n_directions``."""
+    spec = problem.spec
+    known = {k: float(v) for k, v in start.items() if k in spec}
+    row = spec.flatten({**spec.as_dict(), **known})[None]
+    free = moving(spec)[None]
+    k = n_directions or int(free.sum())
+    return fit_output_error_batch(problem, row, free, settings, states, n_directions=k)[0]
+
+
 # A fit is run again from its end while its cost still falls by more than this [σ_x²]: the
 # judge's thresholds are tens of σ_x² (ΔBIC > 10 beyond k·ln n), so a fit this close to its
 # minimum cannot move a decision, and a descent cut short cannot pass for a term's gain.
@@ -219,15 +255,16 @@ def converged(
     settings: OutputErrorSettings,
     states: tuple[np.ndarray, np.ndarray] | None = None,
     fit: OutputErrorFit | None = None,
+    n_directions: int | None = None,
 ) -> OutputErrorFit:
-    """:func:`~fricjax.output_error.fit_output_error` from ``start`` (or continued from
-    ``fit``), restarted from its end until its cost falls by less than :data:`CONVERGED`:
+    """An output-error fit (:func:`_fit`) from ``start`` (or continued from ``fit``),
+    restarted from its end until its cost falls by less than :data:`CONVERGED`:
     Levenberg–Marquardt on output error often meets no tolerance within ``max_steps``."""
-    fit = fit or fit_output_error(problem, dict(start), settings, states)
+    fit = fit or _fit(problem, start, settings, states, n_directions)
     for _ in range(MAX_ROUNDS - 1):
         if fit.success:
             break
-        again = fit_output_error(problem, dict(fit.params), settings, (fit.states_x, fit.states_v))
+        again = _fit(problem, fit.params, settings, (fit.states_x, fit.states_v), n_directions)
         done = fit.cost - again.cost < CONVERGED
         fit = again if again.cost < fit.cost else fit
         if done:
@@ -238,7 +275,8 @@ def converged(
 def fit_base(sup: Superset, start: Mapping[str, float], settings: OutputErrorSettings) -> Fitted:
     """The base model fitted by output error from ``start`` (named values), to convergence."""
     full = {**sup.problem.spec.as_dict(), **dict(start)}
-    return Fitted(sup, (), converged(sup.model(()), full, settings))
+    fit = converged(sup.model(()), full, settings, n_directions=sup.n_directions(()))
+    return Fitted(sup, (), fit)
 
 
 def f_pvalue(lr: Float[np.ndarray, "..."], k: int, nu: int) -> Float[np.ndarray, "..."]:
@@ -270,6 +308,7 @@ def fit_candidates(
     output-error fits run."""
     sup, n = base.superset, base.superset.record.n
     states = (base.fit.states_x, base.fit.states_v)
+    k_step = sup.n_directions(base.active)
     out = []
     for effect, nl_starts in candidates:
         active = (*base.active, effect)
@@ -277,11 +316,11 @@ def fit_candidates(
         # every start gets one round; the best is then run to convergence
         best: OutputErrorFit | None = None
         for nl in nl_starts or ({},):
-            fit = fit_output_error(pb, {**base.fit.params, **nl}, settings, states)
+            fit = _fit(pb, {**base.fit.params, **nl}, settings, states, k_step)
             if best is None or fit.cost < best.cost:
                 best = fit
         assert best is not None
-        fitted = Fitted(sup, active, converged(pb, {}, settings, fit=best))
+        fitted = Fitted(sup, active, converged(pb, {}, settings, fit=best, n_directions=k_step))
         k = fitted.n_free - base.n_free
         lr, p, dbic = _judge_numbers(base.cost, fitted.fit, k, n, nu)
         own = {q: float(fitted.fit.params[q]) for q in sup.names[effect]}
@@ -294,7 +333,13 @@ def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> Candida
     candidate's fit ended (module docstring)."""
     end = cf.fitted.fit
     start = {**end.params, **{q: cf.base.fit.params[q] for q in cf.base.superset.names[cf.effect]}}
-    fit = converged(cf.base.problem, start, settings, (end.states_x, end.states_v))
+    fit = converged(
+        cf.base.problem,
+        start,
+        settings,
+        (end.states_x, end.states_v),
+        n_directions=cf.base.superset.n_directions(cf.base.active),
+    )
     if fit.cost >= cf.base.cost:
         return cf
     base = Fitted(cf.base.superset, cf.base.active, fit)
