@@ -214,11 +214,15 @@ def candidate_blocks(diag: Diagnosis) -> list[Block]:
     blocks: list[Block] = []
     for i, st in enumerate(diag.steps, 1):
         rows = tuple(_candidate_row(st, sc) for sc in st.scores)
+        which = (
+            f"those with p < {st.screen_limit:.2g} refitted"
+            if math.isfinite(st.screen_limit)
+            else "all refitted (the current model's lack of fit is significant)"
+        )
         blocks += [
             Para(
-                f"Step {i}: each candidate's score test at the current model; those with "
-                f"p < {st.screen_limit:.2g} refitted, which must reach p < {st.limit:.2g} and "
-                f"ΔBIC > {st.min_delta_bic:g}:"
+                f"Step {i}: each candidate's score test at the current model; {which}; a "
+                f"refit must reach p < {st.limit:.2g} and ΔBIC > {st.min_delta_bic:g}:"
             ),
             Table(
                 ("candidate", "score [σ_x²]", "score p", "LR [σ_x²]", "p", "ΔBIC", "decision"),

@@ -8,7 +8,8 @@ the report (:mod:`~fricjax.diagnose.report`).
 
 The rule (:func:`decide`). Forward selection up to ``max_terms``: at each step every
 applicable candidate's score test is taken at the current model (one Jacobian, no fit), those
-significant at α are fitted next to it (highest score first), and the best by ΔBIC of the
+significant at α (all of them where the current model's lack of fit is significant) are
+fitted next to it (highest score first), and the best by ΔBIC of the
 fits that pass ``p < α/C`` (C candidates at that step) and ``ΔBIC > min_delta_bic`` is named
 when also
 
@@ -76,11 +77,16 @@ class DiagnoseSettings:
         ``unexplained``; a null record thus gets any finding with probability ≤ 2α (2 % at
         the default 0.01, under the 5 % the project targets).
         It is also the level of the score screen (:func:`~fricjax.diagnose.judge.screen`):
-        a candidate is refitted only where its score test at the current fit is
-        significant at α itself. The score is the likelihood ratio of the model linearised
-        at the fit; the screen's level is α·C times the judge's, so a term is dropped
-        unfitted only where its linearised evidence falls short by that factor, and the
-        screen can only remove candidates, never pass one: the family-wise rate stays α.
+        where the current model fits the record to its noise (lack of fit not significant
+        at α), a candidate is refitted only where its score test is significant at α
+        itself. The score is the likelihood ratio of the model linearised at the fit, the
+        LR's local equivalent; the screen's level is α·C times the judge's, so a term is
+        dropped unfitted only where its linearised evidence falls short by that factor, and
+        the screen can only remove candidates, never pass one: the family-wise rate stays
+        α. Where the lack of fit is significant the model is not near enough to the
+        truth for a local statistic (a term the base has absorbed by bending its own
+        parameters scores nothing at the base yet pays when refitted), and every candidate
+        is refitted.
     min_delta_bic: a term must lower BIC by more than this: 10 is "very strong" evidence on
         Kass & Raftery's scale (posterior odds above 150:1 at equal priors). It guards the
         long records where p alone would pass effects too small to matter.
@@ -88,9 +94,11 @@ class DiagnoseSettings:
     n_starts: grid points per candidate's nonlinear parameters that are scored in output
         error (:func:`~fricjax.diagnose.judge.screen`): the best local maxima of the cheap
         equation-error ranking, the second guarding against a ranking bent by the equation
-        error it is taken from. The refit starts from the best-scored point only: the score
-        is the judge's own metric, and the catalogue's grids are spaced so that LM from the
-        best point reaches its peak.
+        error it is taken from. Where the screen applies (the current model fits to its
+        noise) the refit starts from the best-scored point only: the score is the judge's
+        own metric there, and the catalogue's grids are spaced so that LM from the best
+        point reaches its peak; elsewhere every point starts one round and the best is
+        continued.
     heldout: fraction of the record the split check holds out. 0.3 leaves the training part
         more than twice the unknowns of a 0.27 s record's model (heldout.too_short) and the
         test part long enough (≥ 80 samples at 1 kHz) for its cost to be a χ² of many
@@ -211,8 +219,9 @@ class Decision:
 @dataclass(frozen=True)
 class Step:
     """One step of forward selection: every candidate's score test, the fits of those it
-    passed (``p < screen_limit``), the decisions on the fits that passed the statistics
-    (best first), the per-candidate limit α/C, and the model before."""
+    passed (``p < screen_limit``; ``inf`` where the current model's lack of fit is
+    significant and every candidate is refitted), the decisions on the fits that passed
+    the statistics (best first), the per-candidate limit α/C, and the model before."""
 
     current: Fitted
     scores: tuple[Score, ...]
@@ -375,7 +384,11 @@ def decide(
                 todo.append((effect, starts(current, effect, band, settings.n_starts)))
         with clock.stage("candidates", "score test of every candidate"):
             scores = screen(current, todo, oe, evidence.nu)
-        refit = sorted((s for s in scores if s.p_value < settings.alpha), key=lambda s: -s.score)
+        # the score stands for the LR only near the current model: where that model's own lack
+        # of fit is significant, the term may pay far from it, so every candidate is refitted
+        local = lack_of_fit_p(current, evidence.nu) >= settings.alpha
+        screen_limit = settings.alpha if local else math.inf
+        refit = sorted((s for s in scores if s.p_value < screen_limit), key=lambda s: -s.score)
         fits: list[CandidateFit] = []
         # a candidate is started only if the longest one so far would still end within the
         # limits: the budget is then overrun by a misjudged length, not by a whole candidate
@@ -387,7 +400,10 @@ def decide(
                     continue
                 clock.note(f"output-error fit of {sc.effect}")
                 began = clock.elapsed()
-                fits += fit_candidates(current, [(sc.effect, sc.starts[:1])], oe, evidence.nu)
+                # near the model the score ranks the starts in the judge's metric; far from
+                # it the ranking says little, and each start is fitted
+                st = sc.starts[:1] if local else sc.starts
+                fits += fit_candidates(current, [(sc.effect, st)], oe, evidence.nu)
                 longest = max(longest, clock.elapsed() - began)
         limit = settings.alpha / len(cands)
         passing = sorted(
@@ -417,7 +433,7 @@ def decide(
             tuple(decisions),
             limit,
             settings.min_delta_bic,
-            settings.alpha,
+            screen_limit,
         )
         steps.append(step)
         if step.chosen is None:
