@@ -28,12 +28,14 @@ base's own columns; samples near rest left out, where the sign of the filtered v
 noise). The grids are spaced so that no peak lies between two points (catalogue), and LM
 started within a grid cell of a peak converges to it, so the best point is enough when the
 ranking is right; the second local maximum guards against a ranking bent by the
-equation error's preprocessing bias. Every start costs one output-error fit, so the count
-is kept at two.
+equation error's preprocessing bias. Both are scored in output error (:func:`screen`, Rao's
+score test at the current fit), which decides which candidates are refitted and from which
+start.
 
 One model. Base and candidates are all the same :class:`Superset` model, the terms not
-under test pinned, so one compiled output-error program serves every fit of a record; all
-the candidates' output-error fits go through :func:`fit_candidates`.
+under test pinned (and held by the fit's mask, :func:`moving`), so one compiled output-error
+program serves every fit of a forward-selection step; all the candidates' output-error fits
+go through :func:`fit_candidates`.
 """
 
 from __future__ import annotations
