@@ -110,7 +110,6 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Mapping
-from functools import partial
 from typing import Any, Literal, NamedTuple
 
 import equinox as eqx
@@ -121,10 +120,11 @@ from jaxtyping import Array, Bool, Float, Int
 
 from fricjax.data.preprocess import PreprocessSettings, noise_gains
 from fricjax.errors import FricjaxError, where
+from fricjax.levenberg import levenberg_marquardt
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
 from fricjax.problem import Problem, needs_input
-from fricjax.refine import Refined, RefineSettings, _checked, _refine_one, uncertainty_at
+from fricjax.refine import Refined, RefineSettings, _checked, uncertainty_at
 from fricjax.search.fast_compile import CLASSIC_EMITTERS
 
 __all__ = [
@@ -471,26 +471,6 @@ def _structured_jvp(primals: tuple, tangents: tuple) -> tuple[Array, Array]:
     return r, jac @ tangents[1]
 
 
-@jax.jit
-def _call(fn: eqx.Module, theta: Array) -> Array:
-    return fn(theta)
-
-
-class _Pinned(eqx.Module):
-    """``θ_aug ↦ r_aug(where(free, θ_aug, pin))``: the residual with the components outside
-    ``free`` held at ``pin`` (their Jacobian columns are zero, so Levenberg–Marquardt's
-    damped step leaves them at rest and moves the others exactly as it would in the
-    reduced problem). The residual sits behind one jit boundary: the refiner traces it
-    several times and each trace then reuses one jaxpr instead of re-running the Python."""
-
-    fn: OutputError
-    free: Bool[Array, " D"]
-    pin: Float[Array, " D"]
-
-    def __call__(self, theta_aug: Float[Array, " D"]) -> Float[Array, " m"]:
-        return _call(self.fn, jnp.where(self.free, theta_aug, self.pin))
-
-
 class OutputErrorSetup(NamedTuple):
     """The pieces of a fit over every parameter of the model: the residual, the augmented
     start x0 [P + 2S] (every parameter, then ξ and ν) inside its box [lower, upper]
@@ -664,15 +644,23 @@ def _fit_rows(
         x0: Array, keep: Array, dirs: Array, lo: Array, hi: Array
     ) -> tuple[Refined, Array, Array]:
         res = eqx.tree_at(lambda m: m.directions, residual, dirs)
-        out = _refine_one(_Pinned(res, keep, x0), x0, lo, hi, settings)
-        # the pinned components come back from the box transform's round trip: restore them
-        x = jnp.where(keep, out.x, x0)
-        # through the residual's custom JVP, as the LM linearises it: that reuses the LM's
-        # trace of jacobian_at (a direct call would trace it again, in another context);
-        # J·I is J exactly
-        r, lin = jax.linearize(partial(_call, res), x)
-        jac = jax.vmap(lin, out_axes=1)(jnp.eye(x.shape[0], dtype=x.dtype))
-        return out._replace(x=x), r, jac
+
+        def held(theta_aug: Array) -> Array:
+            return jnp.where(keep, theta_aug, x0)
+
+        fit = levenberg_marquardt(
+            lambda th: res.value(held(th)),
+            lambda th: jacobian_at(res, held(th)),
+            x0,
+            lo,
+            hi,
+            keep,
+            settings,
+        )
+        # r and J at the end point come from the iterations' one call of the Jacobian
+        # program; the held columns are exactly zero
+        out, r, jac = fit
+        return out, r, jac
 
     if x0s.shape[0] == 1:
         # vmap would turn the LM's branches into selects that evaluate both sides
@@ -855,8 +843,9 @@ def fit_output_error(
     n_directions: int | None = None,
 ) -> OutputErrorFit:
     """Minimise E_OE (module docstring) over θ and the segment states by Levenberg–Marquardt
-    (:func:`fricjax.refine.refine`'s, sine box transform) from ``start`` (named values, e.g.
-    the equation-error estimate; missing free names take the config's init), inside the
+    (:func:`fricjax.levenberg.levenberg_marquardt`, sine box transform) from ``start``
+    (named values, e.g. the equation-error estimate; missing free names take the config's
+    init), inside the
     config's box for θ and the state box of the module docstring. The batched program of
     :func:`fit_output_error_batch` with one row: it is compiled once per model, record
     shape and segmentation, whatever the start, the data and the fixed values.

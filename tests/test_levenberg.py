@@ -1,0 +1,105 @@
+"""Levenberg–Marquardt on an explicit Jacobian (fricjax.levenberg)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import fricjax  # noqa: F401  (float64)
+from fricjax.levenberg import levenberg_marquardt
+from fricjax.refine import RefineSettings, refine
+
+SETTINGS = RefineSettings(rtol=1e-10, atol=1e-10, max_steps=500)
+
+
+def _with_jacobian(fn):
+    return lambda th: (fn(th), jax.jacfwd(fn)(th))
+
+
+def _rosenbrock(th):
+    return jnp.stack([10.0 * (th[1] - th[0] ** 2), 1.0 - th[0]])
+
+
+def test_linear_least_squares_lands_on_the_normal_equations_solution():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(40, 3))
+    b = rng.normal(size=40)
+    exact = np.linalg.lstsq(A, b, rcond=None)[0]
+    fn = lambda th: jnp.asarray(A) @ th - jnp.asarray(b)  # noqa: E731
+    lo, hi = exact - 5.0, exact + 5.0
+    fit = levenberg_marquardt(
+        fn, _with_jacobian(fn), jnp.asarray(lo + 1.0), lo, hi, jnp.ones(3, bool), SETTINGS
+    )
+    out = fit.refined
+    assert bool(out.success)
+    np.testing.assert_allclose(out.x, exact, atol=1e-8)
+    np.testing.assert_allclose(out.cost_after, np.sum((A @ exact - b) ** 2), rtol=1e-12)
+    # r and J handed back are those at the end point
+    np.testing.assert_allclose(fit.r, A @ np.asarray(out.x) - b, atol=1e-12)
+    np.testing.assert_allclose(fit.jac, A, atol=1e-12)
+
+
+def test_held_components_stay_and_the_rest_solve_the_reduced_problem():
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(30, 3))
+    b = rng.normal(size=30)
+    fn = lambda th: jnp.asarray(A) @ th - jnp.asarray(b)  # noqa: E731
+    x0 = np.array([0.3, 0.7, -0.2])
+    free = np.array([True, False, True])
+    lo, hi = x0 - 10.0, x0 + 10.0
+    out = levenberg_marquardt(
+        fn, _with_jacobian(fn), jnp.asarray(x0), lo, hi, free, SETTINGS
+    ).refined
+    assert float(out.x[1]) == x0[1]
+    reduced = np.linalg.lstsq(A[:, free], b - A[:, 1] * x0[1], rcond=None)[0]
+    np.testing.assert_allclose(np.asarray(out.x)[free], reduced, atol=1e-8)
+
+
+def test_rosenbrock_valley_reaches_the_minimum_as_optimistix_does():
+    lo, hi = np.array([-2.0, -2.0]), np.array([2.0, 3.0])
+    x0 = np.array([-1.2, 1.0])
+    out = levenberg_marquardt(
+        _rosenbrock, _with_jacobian(_rosenbrock), jnp.asarray(x0), lo, hi,
+        jnp.ones(2, bool), SETTINGS,
+    ).refined  # fmt: skip
+    ref = refine(_rosenbrock, x0, lo, hi, SETTINGS)
+    assert bool(out.success)
+    np.testing.assert_allclose(out.x, [1.0, 1.0], atol=1e-7)
+    np.testing.assert_allclose(out.x, ref.x, atol=1e-7)
+    assert float(out.cost_after) < 1e-14
+
+
+def test_an_optimum_outside_the_box_ends_on_its_bound():
+    fn = lambda th: th - 5.0  # noqa: E731  (minimum at 5, box [0, 2])
+    out = levenberg_marquardt(
+        fn, _with_jacobian(fn), jnp.asarray([1.0]), jnp.asarray([0.0]), jnp.asarray([2.0]),
+        jnp.ones(1, bool), SETTINGS,
+    ).refined  # fmt: skip
+    np.testing.assert_allclose(out.x, [2.0], atol=1e-8)
+    np.testing.assert_allclose(out.cost_after, 9.0, rtol=1e-8)
+
+
+def test_vmapped_starts_equal_separate_fits():
+    lo, hi = jnp.asarray([-2.0, -2.0]), jnp.asarray([2.0, 3.0])
+    starts = jnp.asarray([[-1.2, 1.0], [0.5, -1.0], [1.5, 2.5]])
+
+    def fit(x0):
+        return levenberg_marquardt(
+            _rosenbrock, _with_jacobian(_rosenbrock), x0, lo, hi, jnp.ones(2, bool), SETTINGS
+        ).refined
+
+    batched = jax.jit(jax.vmap(fit))(starts)
+    for i in range(3):
+        one = jax.jit(fit)(starts[i])
+        np.testing.assert_allclose(batched.x[i], one.x, atol=1e-12)
+        assert int(batched.n_steps[i]) == int(one.n_steps)
+
+
+def test_a_start_no_step_improves_is_returned_unchanged():
+    fn = lambda th: jnp.asarray([jnp.nan]) * th  # noqa: E731  (nowhere finite)
+    x0 = jnp.asarray([0.5])
+    out = levenberg_marquardt(
+        fn, _with_jacobian(fn), x0, jnp.asarray([0.0]), jnp.asarray([1.0]),
+        jnp.ones(1, bool), SETTINGS,
+    ).refined  # fmt: skip
+    assert float(out.x[0]) == 0.5
+    assert not bool(out.success)
