@@ -466,9 +466,12 @@ def screen(
     from one Jacobian, without a fit. The projection also removes what the current fit had
     left to descend (a fit stopped short of its minimum), so ``S`` is the term's own share.
 
-    One Jacobian (:func:`~fricjax.output_error.jacobian_at`, compiled once per record
-    shape) serves the base and every candidate without nonlinear parameters; one more is
-    taken at each start of the others."""
+    The Jacobians are those of the step's fits (:func:`~fricjax.output_error.jacobian_at`
+    along K = :meth:`Superset.n_directions` directions, the program the fits already
+    traced): each call takes the current model's columns and those of as many candidates
+    without nonlinear parameters as fill the remaining directions, and one call is made at
+    each start of the others. A call over every candidate at once would be another
+    program, traced and loaded anew in every process (seconds) for a few tangents saved."""
     sup = current.superset
     spec = sup.problem.spec
     setup = output_error_residual(
@@ -476,27 +479,52 @@ def screen(
     )
     theta = setup.x0
     names = list(spec.names)
-    P, D = len(names), theta.shape[0]
+    P = len(names)
     pinned = _pinned(current)
-    base_idx = [i for i, q in enumerate(names) if spec[q].free and q not in pinned]
-    base_idx += list(range(P, D))
-    r, jac = (np.asarray(a) for a in jacobian_at(setup.residual, jnp.asarray(theta)))
+    base_params = [i for i, q in enumerate(names) if spec[q].free and q not in pinned]
+    base_idx = base_params + list(range(P, theta.shape[0]))
+    K = sup.n_directions(current.active)
+
+    def jacobian(row: np.ndarray, extra: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        chosen = [*base_params, *extra]
+        # a term with parameters outside the spec's free ones can need more than K
+        dirs = np.zeros((max(K, len(chosen)), P))
+        dirs[np.arange(len(chosen)), chosen] = 1.0
+        res = eqx.tree_at(lambda m: m.directions, setup.residual, jnp.asarray(dirs))
+        r, jac = jacobian_at(res, jnp.asarray(row))
+        return np.asarray(r), np.asarray(jac)
+
+    own: dict[str, list[int]] = {}
+    for effect, _ in todo:
+        grid = candidate(effect).grid(sup.record)
+        own[effect] = [names.index(q) for q in sup.names[effect] if q not in grid]
+    # candidates without nonlinear starts, packed into calls of K directions
+    room = K - len(base_params)
+    chunks: list[list[str]] = []
+    for effect, nl_starts in todo:
+        if nl_starts:
+            continue
+        if not chunks or sum(len(own[e]) for e in chunks[-1]) + len(own[effect]) > room:
+            chunks.append([])
+        chunks[-1].append(effect)
+    r, jac = jacobian(theta, [i for e in (chunks[0] if chunks else []) for i in own[e]])
     basis = base_basis(jac[:, base_idx])
     scores: dict[str, list[tuple[float, dict[str, float]]]] = {}
-    ks: dict[str, int] = {}
+    for k, chunk in enumerate(chunks):
+        at = jac if k == 0 else jacobian(theta, [i for e in chunk for i in own[e]])[1]
+        for effect in chunk:
+            scores[effect] = [(score_statistic(r, basis, at[:, own[effect]]), {})]
     for effect, nl_starts in todo:
-        grid = candidate(effect).grid(sup.record)
-        own = [names.index(q) for q in sup.names[effect] if q not in grid]
-        ks[effect] = len(own)
-        for nl in nl_starts or ({},):
+        for nl in nl_starts:
             # the term's columns at this start: its amplitudes at their null leave the
             # trajectory, r and the base's columns as they are
             row = theta.copy()
             for q, val in nl.items():
                 row[names.index(q)] = val
-            at = jac if not nl else np.asarray(jacobian_at(setup.residual, jnp.asarray(row))[1])
-            stat = score_statistic(r, basis, at[:, own])
+            at = jacobian(row, own[effect])[1]
+            stat = score_statistic(r, basis, at[:, own[effect]])
             scores.setdefault(effect, []).append((stat, dict(nl)))
+    ks = {effect: len(own[effect]) for effect, _ in todo}
     out = []
     for effect, _ in todo:
         ranked = sorted(scores[effect], key=lambda s: -s[0])
