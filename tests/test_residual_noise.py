@@ -122,3 +122,46 @@ def test_without_the_preprocessing_settings_sigma_stays_gauss_newton(seeds):
     # σ² = E/(n − d)·(JᵀJ)⁻¹ for the offset, from the residual alone
     want = math.sqrt(r @ r / (r.size - 3) * np.linalg.inv(jac.T @ jac)[0, 0])
     assert unc.std[0] == pytest.approx(want, rel=1e-9)
+
+
+def _paper_problem(decimate: int | None = None) -> Problem:
+    from fricjax.data.twin import paper_twin
+
+    raw = tomllib.loads((ROOT / "configs" / "paper.toml").read_text())
+    if decimate:
+        raw.setdefault("preprocess", {})["decimate"] = decimate
+    rec, _ = paper_twin(duration=1.0, seed=3)
+    return build_problem(rec, parse_config(raw))
+
+
+@pytest.mark.parametrize("case", ["axis", "paper"])
+def test_the_banded_pointwise_path_equals_the_sum_over_every_impulse(seeds, case, monkeypatch):
+    if case == "axis":
+        problem, x, _, jac = seeds[0]
+    else:
+        problem = _paper_problem()
+        x = problem.spec.init
+        jac = value_and_jacobian(problem.residual_fn, x)[1]
+    n_raw = problem.n + 2 * problem.preprocess.trim
+    dt = float(problem.t[-1] - problem.t[0]) / (problem.n - 1)
+    assert residual_noise_module._reach(problem.preprocess, n_raw, dt) is not None
+    banded = residual_noise(problem, x, jac)
+    monkeypatch.setattr(residual_noise_module, "_reach", lambda *a: None)
+    dense = residual_noise(problem, x, jac)
+    # the reach leaves BAND_TOL = 1e-20 of each response's squared mass out: ~1e-10 of an
+    # amplitude, far below σ's own sampling error; off-diagonal terms against their scale
+    scale = np.sqrt(np.outer(np.diag(dense.jsj), np.diag(dense.jsj)))
+    assert np.all(np.abs(banded.jsj - dense.jsj) <= 1e-8 * scale)
+    assert banded.trace == pytest.approx(dense.trace, rel=1e-8)
+    assert banded.trace_sq == pytest.approx(dense.trace_sq, rel=1e-8)
+
+
+def test_a_decimated_residual_is_not_taken_for_pointwise():
+    import jax.numpy as jnp
+
+    problem = _paper_problem(decimate=4)
+    n_raw = problem.n + 2 * problem.preprocess.trim
+    dt = float(problem.t[-1] - problem.t[0]) / (problem.n - 1)
+    irs = residual_noise_module._impulse_responses(problem.preprocess, n_raw, dt)
+    theta = jnp.asarray(problem.spec.init)
+    assert residual_noise_module._pointwise_gains(problem.residual_fn, theta, irs) is None
