@@ -63,9 +63,16 @@ from fricjax.config import Config
 from fricjax.data.recording import read_recording
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings, prng_key
-from fricjax.problem import Problem, build_problem
-from fricjax.refine import RefineSettings, _checked, _refine_batch, cluster_minima, uncertainty_at
-from fricjax.residual_noise import residual_noise
+from fricjax.problem import Problem, build_problem, stack_trees
+from fricjax.refine import (
+    RefineSettings,
+    ResidualNoise,
+    _checked,
+    _refine_batch,
+    cluster_minima,
+    uncertainty_at,
+)
+from fricjax.residual_noise import residual_noises
 from fricjax.search.chains import (
     _checked_t0,
     _Control,
@@ -215,14 +222,6 @@ def plan_shards(
 # --------------------------------------------------------------------------------------
 
 
-def _stack(trees: Sequence[Any]) -> Any:
-    """Stack equal-structure pytrees along a new leading axis (numpy on the host)."""
-    arrays, static = eqx.partition(list(trees), eqx.is_array)
-    first_static = static[0]
-    stacked = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *arrays)
-    return eqx.combine(stacked, first_static)
-
-
 def _search_program(
     algorithm: Any,
     key: Array,
@@ -324,7 +323,7 @@ def _fit_shard(
     out = _search(
         run.algorithm,
         run.key,
-        _stack([_search_cost(p, separable) for p in lanes]),
+        stack_trees([_search_cost(p, separable) for p in lanes]),
         np.stack([b[0] for b in boxes]),
         np.stack([b[1] for b in boxes]),
         _device_settings(anneal),
@@ -358,7 +357,7 @@ def _fit_shard(
             np.isfinite(starts) & (starts >= lower[:, None]) & (starts <= upper[:, None]), axis=2
         )
         starts = np.where(safe[:, :, None], starts, ((lower + upper) / 2)[:, None])
-        residuals = _stack([p.residual_fn for p in lanes])
+        residuals = stack_trees([p.residual_fn for p in lanes])
         polished = jax.device_get(
             _polish(residuals, starts, lower, upper, _checked(settings.refiner))
         )
@@ -370,9 +369,12 @@ def _fit_shard(
         best_x = np.where(keep[:, None], x_new, search_x)
         best_cost = np.where(keep, c_new, search_cost)
     else:
-        residuals = _stack([p.residual_fn for p in lanes])
+        residuals = stack_trees([p.residual_fn for p in lanes])
     r_all, jac_all = jax.device_get(_jacobian(residuals, best_x))
 
+    # the members' noise models at once: one program per shard for the pointwise ones
+    n = len(members)
+    noises = residual_noises(problems, list(best_x[:n]), [np.asarray(j) for j in jac_all[:n]])
     fits = []
     for i, member in enumerate(members):
         fits.append(
@@ -380,7 +382,7 @@ def _fit_shard(
                 member, settings, number, float(t0[i]), int(levels[i]),
                 int(n_evals[i, levels[i] - 1]) if levels[i] else 0, chain_x[i], chain_cost[i],
                 best_x[i], float(best_cost[i]), float(search_cost[i]), np.asarray(r_all[i]),
-                np.asarray(jac_all[i]),
+                np.asarray(jac_all[i]), noises[i],
             )
         )  # fmt: skip
     return fits
@@ -400,6 +402,7 @@ def _member_fit(
     cost_search: float,
     r: np.ndarray,
     jac: np.ndarray,
+    noise: ResidualNoise | None,
 ) -> FleetFit:
     problem = member.problem
     assert problem is not None
@@ -416,7 +419,7 @@ def _member_fit(
             spec.lower,
             spec.upper,
             names=list(spec.free_names),
-            noise=residual_noise(problem, x, jac),
+            noise=noise,
         )
     except FricjaxError as err:
         return failed(member, str(err), sha256=sha, shard=number)

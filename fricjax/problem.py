@@ -22,11 +22,13 @@ specialise on them at trace time.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -336,3 +338,12 @@ def build_problem(
         source=rec.path,
         preprocess=settings,
     )
+
+
+def stack_trees(trees: Sequence[Any]) -> Any:
+    """Equal-structure pytrees (e.g. the residual functions of problems of one shape)
+    stacked along a new leading axis of their array leaves (numpy, on the host); the
+    static parts are the first tree's. For vmapping one program over them."""
+    arrays, static = eqx.partition(list(trees), eqx.is_array)
+    stacked = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *arrays)
+    return eqx.combine(stacked, static[0])

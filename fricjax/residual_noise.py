@@ -47,7 +47,8 @@ the Gauss–Newton σ.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from functools import lru_cache
+from functools import lru_cache, partial
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -55,9 +56,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.data.noise import estimate_noise
+from fricjax.data.noise import NoiseEstimate, estimate_noise
 from fricjax.data.preprocess import PreprocessSettings, derivatives
-from fricjax.problem import EquationError, Problem
+from fricjax.problem import EquationError, Problem, stack_trees
 from fricjax.refine import ResidualNoise
 
 #: Records up to this many raw samples sum exactly over the unit vectors of x.
@@ -175,29 +176,54 @@ def _pointwise_moments(
     return d @ jac, jnp.sum(d * d), trace_sq
 
 
-_pointwise_moments_jit = jax.jit(_pointwise_moments, static_argnums=(3, 4))
+@partial(jax.jit, static_argnums=(3, 4))
+def _pointwise_moments_many(
+    gains: Float[Array, "B 3 m"],
+    responses: Float[Array, "3 N m"],
+    jacs: Float[Array, "B m d"],
+    trim: int,
+    reach: int,
+) -> tuple[Float[Array, "B N d"], Float[Array, " B"], Float[Array, " B"]]:
+    """:func:`_pointwise_moments` of B problems, one after another (``lax.map``): under
+    vmap the block products became XLA CPU dots with a batch axis, 2-3x slower each."""
+    return jax.lax.map(
+        lambda gj: _pointwise_moments(gj[0], responses, gj[1], trim, reach), (gains, jacs)
+    )
 
 
 def _pointwise_gains(
-    residual: EquationError, theta: Array, irs: tuple[np.ndarray, ...]
-) -> Float[np.ndarray, "3 m"] | None:
-    """``g_s = ∂r_i/∂s_i`` (s = x, v, a) where the residual is pointwise in its signals (the
-    tangent of ones along each signal), checked against the exact change of one random
-    perturbation of x through the preprocessing; None where they disagree (a decimated
-    residual, a stateful term)."""
+    residuals: Sequence[EquationError],
+    thetas: Float[np.ndarray, "B d"],
+    irs: tuple[np.ndarray, ...],
+) -> list[Float[np.ndarray, "3 m"] | None]:
+    """``g_s = ∂r_i/∂s_i`` (s = x, v, a) of each residual where it is pointwise in its
+    signals (the tangent of ones along each signal), checked against the exact change of
+    one random perturbation of x through the preprocessing; None where they disagree (a
+    decimated residual, a stateful term). One vmapped program over the residuals (equal
+    structure)."""
     n_raw, m = irs[0].shape
     eps = np.random.default_rng(_KEY).standard_normal(n_raw)
     probe = [eps @ ir for ir in irs]
     eye = np.eye(3)
     rows = [np.stack([np.full(m, eye[i, s]) for i in range(3)] + [probe[s]]) for s in range(3)]
-    out = np.asarray(_tangents_jit(residual, theta, *rows))
-    if out.shape[1] != m:
-        return None
-    gains, exact = out[:3], out[3]
-    predicted = np.sum(gains * np.stack(probe), axis=0)
-    if not np.linalg.norm(exact - predicted) <= POINTWISE_RTOL * np.linalg.norm(exact):
-        return None
-    return gains
+    stacked = stack_trees(residuals)
+    out = np.asarray(_tangents_many(stacked, jnp.asarray(thetas), *rows))  # [B, 4, n]
+    if out.shape[2] != m:
+        return [None] * len(residuals)
+    result: list[np.ndarray | None] = []
+    for lane in out:
+        gains, exact = lane[:3], lane[3]
+        predicted = np.sum(gains * np.stack(probe), axis=0)
+        ok = np.linalg.norm(exact - predicted) <= POINTWISE_RTOL * np.linalg.norm(exact)
+        result.append(gains if ok else None)
+    return result
+
+
+@eqx.filter_jit
+def _tangents_many(
+    residuals: EquationError, thetas: Float[Array, "B d"], dx: Array, dv: Array, da: Array
+) -> Float[Array, "B K n"]:
+    return eqx.filter_vmap(lambda r, th: _tangents(r, th, dx, dv, da))(residuals, thetas)
 
 
 def residual_noise(
@@ -207,7 +233,8 @@ def residual_noise(
     *,
     scale: float = 1.0,
 ) -> ResidualNoise | None:
-    """``JᵀΣJ`` and ``tr Σ`` of ``problem``'s residual at ``theta`` (module docstring).
+    """``JᵀΣJ``, ``tr Σ`` and ``tr Σ²`` of ``problem``'s residual at ``theta`` (module
+    docstring).
 
     Args:
         problem: the preprocessed recording and model (its ``preprocess`` settings made v, a).
@@ -220,40 +247,80 @@ def residual_noise(
         :class:`~fricjax.refine.ResidualNoise` in (scale·N)² units, or None where the noise
         model cannot be built (the caller then keeps the Gauss–Newton σ).
     """
-    settings = problem.preprocess
-    if settings is None or problem.n < 16:
-        return None
-    noise = estimate_noise(problem.x)
-    if not noise.sigma > 0.0:
-        return None
-    trim, n = settings.trim, problem.n
-    n_raw = n + 2 * trim
-    dt = float(problem.t[-1] - problem.t[0]) / (n - 1)
-    t_raw = problem.t[0] + (np.arange(n_raw) - trim) * dt
-    exact = n_raw <= EXACT_UP_TO
-    count = n_raw if exact else DRAWS
-    residual = problem.residual_fn
-    theta_j = jnp.asarray(theta, dtype=jnp.float64)
-    jac = np.asarray(jac, dtype=np.float64)
-    var = noise.sigma**2 * scale**2
-    reach = _reach(settings, n_raw, dt) if exact else None
-    gains = None
-    if reach is not None:
-        gains = _pointwise_gains(residual, theta_j, _impulse_responses(settings, n_raw, dt))
-    if reach is not None and gains is not None:
-        responses = _stacked_responses(settings, n_raw, dt)
-        w, sq_total, dd = (
-            np.asarray(a)
-            for a in _pointwise_moments_jit(gains, responses, jac, settings.trim, reach)
-        )
-        jsj, trace, trace_sq = var * (w.T @ w), var * float(sq_total), var**2 * float(dd)
-    else:
-        jsj, trace, trace_sq = _dense_moments(
-            residual, theta_j, jac, settings, t_raw, n_raw, dt, exact, count, var
-        )
-    how = "exact" if exact else f"{count} draws"
-    label = f"x noise {noise.describe('m')}; propagated through the preprocessing ({how})"
-    return ResidualNoise(jsj=jsj, trace=trace, trace_sq=trace_sq, label=label)
+    return residual_noises([problem], [theta], [jac], [scale])[0]
+
+
+def residual_noises(
+    problems: Sequence[Problem],
+    thetas: Sequence[Float[np.ndarray, " d"]],
+    jacs: Sequence[Float[np.ndarray, "n d"]],
+    scales: Sequence[float] | None = None,
+) -> list[ResidualNoise | None]:
+    """:func:`residual_noise` of several problems, the same numbers as one by one: the
+    pointwise ones of one preprocessing, length and residual structure (a fleet's shard)
+    share one vmapped program for their gains and one for their moments."""
+    scales = [1.0] * len(problems) if scales is None else list(scales)
+    out: list[ResidualNoise | None] = [None] * len(problems)
+    groups: dict[Any, list[tuple[int, NoiseEstimate]]] = {}
+    for i, problem in enumerate(problems):
+        settings = problem.preprocess
+        if settings is None or problem.n < 16:
+            continue
+        noise = estimate_noise(problem.x)
+        if not noise.sigma > 0.0:
+            continue
+        n_raw = problem.n + 2 * settings.trim
+        dt = float(problem.t[-1] - problem.t[0]) / (problem.n - 1)
+        structure = jax.tree.structure(eqx.filter(problem.residual_fn, eqx.is_array))
+        groups.setdefault((settings, n_raw, dt, structure), []).append((i, noise))
+    for (settings, n_raw, dt, _), members in groups.items():
+        exact = n_raw <= EXACT_UP_TO
+        reach = _reach(settings, n_raw, dt) if exact else None
+        moments: dict[int, tuple[np.ndarray, float, float]] = {}
+        if reach is not None:
+            idx = [i for i, _ in members]
+            gains = _pointwise_gains(
+                [problems[i].residual_fn for i in idx],
+                np.stack([np.asarray(thetas[i], np.float64) for i in idx]),
+                _impulse_responses(settings, n_raw, dt),
+            )
+            ok = [k for k, g in enumerate(gains) if g is not None]
+            if ok:
+                w, sq, dd = (
+                    np.asarray(a)
+                    for a in _pointwise_moments_many(
+                        np.stack([gains[k] for k in ok]),
+                        _stacked_responses(settings, n_raw, dt),
+                        np.stack([np.asarray(jacs[idx[k]], np.float64) for k in ok]),
+                        settings.trim,
+                        reach,
+                    )
+                )
+                for j, k in enumerate(ok):
+                    moments[idx[k]] = (w[j].T @ w[j], float(sq[j]), float(dd[j]))
+        offsets = (np.arange(n_raw) - settings.trim) * dt
+        how = "exact" if exact else f"{DRAWS} draws"
+        for i, noise in members:
+            var = noise.sigma**2 * scales[i] ** 2
+            if i in moments:
+                wtw, sq_i, dd_i = moments[i]
+                jsj, trace, trace_sq = var * wtw, var * sq_i, var**2 * dd_i
+            else:
+                jsj, trace, trace_sq = _dense_moments(
+                    problems[i].residual_fn,
+                    jnp.asarray(thetas[i], dtype=jnp.float64),
+                    np.asarray(jacs[i], dtype=np.float64),
+                    settings,
+                    problems[i].t[0] + offsets,
+                    n_raw,
+                    dt,
+                    exact,
+                    n_raw if exact else DRAWS,
+                    var,
+                )
+            label = f"x noise {noise.describe('m')}; propagated through the preprocessing ({how})"
+            out[i] = ResidualNoise(jsj=jsj, trace=trace, trace_sq=trace_sq, label=label)
+    return out
 
 
 def _dense_moments(

@@ -157,11 +157,22 @@ def test_the_banded_pointwise_path_equals_the_sum_over_every_impulse(seeds, case
 
 
 def test_a_decimated_residual_is_not_taken_for_pointwise():
-    import jax.numpy as jnp
-
     problem = _paper_problem(decimate=4)
     n_raw = problem.n + 2 * problem.preprocess.trim
     dt = float(problem.t[-1] - problem.t[0]) / (problem.n - 1)
     irs = residual_noise_module._impulse_responses(problem.preprocess, n_raw, dt)
-    theta = jnp.asarray(problem.spec.init)
-    assert residual_noise_module._pointwise_gains(problem.residual_fn, theta, irs) is None
+    theta = np.asarray(problem.spec.init)[None]
+    assert residual_noise_module._pointwise_gains([problem.residual_fn], theta, irs) == [None]
+
+
+def test_several_problems_at_once_give_each_its_own_noise(seeds):
+    from fricjax.residual_noise import residual_noises
+
+    chosen = seeds[:3]
+    batch = residual_noises([s[0] for s in chosen], [s[1] for s in chosen], [s[3] for s in chosen])
+    for (problem, x, _, jac), together in zip(chosen, batch, strict=True):
+        alone = residual_noise(problem, x, jac)
+        np.testing.assert_allclose(together.jsj, alone.jsj, rtol=1e-12)
+        assert together.trace == pytest.approx(alone.trace, rel=1e-12)
+        assert together.trace_sq == pytest.approx(alone.trace_sq, rel=1e-12)
+        assert together.label == alone.label
