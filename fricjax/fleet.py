@@ -56,6 +56,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import h5py
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
@@ -82,7 +83,7 @@ from fricjax.search.chains import (
     _WithAux,
     relative_temperatures,
 )
-from fricjax.search.separable import separate
+from fricjax.search.separable import projected, separate
 
 
 def default_shard_size() -> int:
@@ -264,6 +265,7 @@ def _jacobian_program(residual_fns: Any, x: Float[Array, "B d"]) -> tuple[Array,
 _search = eqx.filter_jit(_search_program)
 _polish = eqx.filter_jit(_polish_program)
 _jacobian = eqx.filter_jit(_jacobian_program)
+_exact = eqx.filter_jit(eqx.filter_vmap(lambda pr: projected(pr, jnp.zeros((0,)))))
 
 
 def fit_shard(
@@ -291,18 +293,11 @@ def _one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}{at}".replace("\n", " ")
 
 
-def _fit_shard(
-    members: Sequence[Member], width: int, settings: IdentifySettings, number: int
-) -> list[FleetFit]:
-    if settings.objective != "equation":
-        raise FricjaxError(
-            "[search].objective: the fleet fits by equation error only "
-            f"(got {settings.objective!r}; run `fricjax identify` per recording for it)"
-        )
-    problems = [m.problem for m in members]
-    if any(p is None for p in problems) or not 1 <= len(problems) <= width:
-        raise FricjaxError(f"fleet shard {number}: needs 1..{width} loaded recordings")
-    lanes = [*problems, *[problems[-1]] * (width - len(problems))]
+def _searched(
+    lanes: Sequence[Problem], settings: IdentifySettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The annealing search of every lane as one vmapped program: chain end points [W, C,
+    d], their costs [W, C], levels run [W], evaluations per level [W, L], t0 [W], C."""
     separable = settings.separable
     spec = lanes[0].spec
     lo, hi = _search_box(lanes[0], separable)
@@ -340,7 +335,35 @@ def _fit_shard(
     levels = np.asarray(out.level)
     n_evals = np.asarray(out.n_evals)
     t0 = np.asarray(out.t0)
+    return chain_x, chain_cost, levels, n_evals, t0, n_chains
 
+
+def _fit_shard(
+    members: Sequence[Member], width: int, settings: IdentifySettings, number: int
+) -> list[FleetFit]:
+    if settings.objective != "equation":
+        raise FricjaxError(
+            "[search].objective: the fleet fits by equation error only "
+            f"(got {settings.objective!r}; run `fricjax identify` per recording for it)"
+        )
+    problems = [m.problem for m in members]
+    if any(p is None for p in problems) or not 1 <= len(problems) <= width:
+        raise FricjaxError(f"fleet shard {number}: needs 1..{width} loaded recordings")
+    lanes = [*problems, *[problems[-1]] * (width - len(problems))]
+    separable = settings.separable
+    if separable and separate(lanes[0]).n_nonlinear == 0:
+        # every free parameter linear: one exact solve per recording, nothing to search
+        # (identify does the same)
+        projections = stack_trees([separate(p).full_theta.projection for p in lanes])
+        theta, cost = jax.device_get(_exact(projections))
+        chain_cost = np.asarray(cost)[:, None]
+        chain_x = np.asarray(theta)[:, None, :]
+        n_chains = 1
+        levels = np.zeros(width, dtype=int)
+        n_evals = np.zeros((width, 1), dtype=int)
+        t0 = np.zeros(width)
+    else:
+        chain_x, chain_cost, levels, n_evals, t0, n_chains = _searched(lanes, settings)
     lower = np.stack([np.asarray(p.spec.lower, np.float64) for p in lanes])
     upper = np.stack([np.asarray(p.spec.upper, np.float64) for p in lanes])
     best_i = np.argmin(chain_cost, axis=1)

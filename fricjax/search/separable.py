@@ -400,6 +400,14 @@ class FullTheta(eqx.Module):
         return _solve(self.projection, theta_nl)[0]
 
 
+def projected(
+    projection: Projection, theta_nl: Float[Array, " d_nl"]
+) -> tuple[Float[Array, " d"], Float[Array, ""]]:
+    """θ [d] and E_P [N²] at ``θ_nl`` (traceable: vmap it over chains, or over stacked
+    projections of several recordings)."""
+    return _solve(projection, theta_nl)
+
+
 @eqx.filter_jit
 def _project_batch(
     projection: Projection, theta_nl: Float[Array, "C d_nl"]
