@@ -99,11 +99,24 @@ def _differences_scale(y: Float[np.ndarray, " n"], k: int) -> float:
 
 
 def _block_se(y: Float[np.ndarray, " n"], k: int) -> float:
-    """Standard error of eq. (2) from its spread over contiguous blocks (nan if < 2 fit)."""
+    """Standard error of eq. (2) from its spread over contiguous blocks (nan if < 2 fit).
+
+    The blocks are ``np.array_split``'s (the first ``n mod blocks`` one sample longer),
+    taken as two 2-D arrays of equal rows so that each order costs two medians, not one
+    per block (a fleet estimates the noise of every recording)."""
     blocks = min(BLOCKS, y.shape[0] // (8 * (k + 1)))
     if blocks < 2:
         return math.nan
-    scales = [_differences_scale(b, k) for b in np.array_split(y, blocks)]
+    q, r = divmod(y.shape[0], blocks)
+    parts = (y[: r * (q + 1)].reshape(r, q + 1), y[r * (q + 1) :].reshape(blocks - r, q))
+    root = math.sqrt(math.comb(2 * k, k))
+    scales = np.concatenate(
+        [
+            _MAD_TO_STD * np.median(np.abs(np.diff(b, n=k, axis=1)), axis=1) / root
+            for b in parts
+            if b.size
+        ]
+    )
     return float(np.std(scales, ddof=1) / math.sqrt(blocks))
 
 
