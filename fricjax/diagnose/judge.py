@@ -41,7 +41,8 @@ go through :func:`fit_candidates`.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import equinox as eqx
@@ -258,15 +259,22 @@ def converged(
     states: tuple[np.ndarray, np.ndarray] | None = None,
     fit: OutputErrorFit | None = None,
     n_directions: int | None = None,
+    more: Callable[[float], bool] | None = None,
 ) -> OutputErrorFit:
     """An output-error fit (:func:`_fit`) from ``start`` (or continued from ``fit``),
     restarted from its end until its cost falls by less than :data:`CONVERGED`:
-    Levenberg–Marquardt on output error often meets no tolerance within ``max_steps``."""
+    Levenberg–Marquardt on output error often meets no tolerance within ``max_steps``.
+    ``more(seconds)``: whether a round expected to take that long (the last one's wall
+    time) may still start (a time limit); None: always."""
+    began = time.perf_counter()
     fit = fit or _fit(problem, start, settings, states, n_directions)
+    last = time.perf_counter() - began
     for _ in range(MAX_ROUNDS - 1):
-        if fit.success:
+        if fit.success or (more is not None and not more(last)):
             break
+        began = time.perf_counter()
         again = _fit(problem, fit.params, settings, (fit.states_x, fit.states_v), n_directions)
+        last = time.perf_counter() - began
         done = fit.cost - again.cost < CONVERGED
         fit = again if again.cost < fit.cost else fit
         if done:
@@ -274,10 +282,16 @@ def converged(
     return fit
 
 
-def fit_base(sup: Superset, start: Mapping[str, float], settings: OutputErrorSettings) -> Fitted:
-    """The base model fitted by output error from ``start`` (named values), to convergence."""
+def fit_base(
+    sup: Superset,
+    start: Mapping[str, float],
+    settings: OutputErrorSettings,
+    more: Callable[[float], bool] | None = None,
+) -> Fitted:
+    """The base model fitted by output error from ``start`` (named values), to convergence
+    or until ``more`` (:func:`converged`) refuses another round."""
     full = {**sup.problem.spec.as_dict(), **dict(start)}
-    fit = converged(sup.model(()), full, settings, n_directions=sup.n_directions(()))
+    fit = converged(sup.model(()), full, settings, n_directions=sup.n_directions(()), more=more)
     return Fitted(sup, (), fit)
 
 

@@ -464,7 +464,16 @@ def diagnose(
         band = near_rest_band(problem, evidence.sigma_x)
         oe = settings.output_error(evidence)
         clock.note("base fit by output error")
-        base = fit_base(Superset.build(problem), problem.spec.as_dict(run.value), oe)
+
+        def more(need: float) -> bool:
+            # the first round always runs (no diagnosis without a base); a further round
+            # only where it would end within the limit
+            if clock.over("base_fit", need):
+                clock.skip("base_fit", "base fit: further Levenberg–Marquardt rounds")
+                return False
+            return True
+
+        base = fit_base(Superset.build(problem), problem.spec.as_dict(run.value), oe, more)
     checks: list[Check] = [Split(settings.heldout, oe)]
     if validation is not None:
         checks.append(SecondRecording(_undecimated(validation), oe))

@@ -230,3 +230,30 @@ def test_a_pinned_parameter_keeps_an_open_box_wherever_its_null_lies(twin_proble
     pinned = sup.model(()).spec
     assert all(q.upper > q.lower for q in pinned.params if q.free)
     assert pinned["bump_x0"].lower == -0.0100182
+
+
+def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> None:
+    """The judge's rounds of Levenberg–Marquardt continue while a round gains at least
+    CONVERGED, and not past a refusal of ``more`` (the diagnosis' time limit): the first
+    round always runs, ``more`` sees the last round's wall time."""
+    import fricjax.diagnose.judge as judge
+
+    costs = iter([100.0, 90.0, 80.0, 79.9, 79.8])
+    calls: list[float] = []
+
+    def fake_fit(problem, start, settings, states, n_directions):
+        cost = next(costs)
+        calls.append(cost)
+        return SimpleNamespace(success=False, cost=cost, params={}, states_x=0, states_v=0)
+
+    monkeypatch.setattr(judge, "_fit", fake_fit)
+    fit = judge.converged(None, {}, None)
+    # 100 -> 90 -> 80 gain 10 each, 80 -> 79.9 gains less than CONVERGED: stop there
+    assert calls == [100.0, 90.0, 80.0, 79.9] and fit.cost == 79.9
+
+    costs = iter([100.0, 90.0, 80.0])
+    calls.clear()
+    seen: list[float] = []
+    fit = judge.converged(None, {}, None, more=lambda need: seen.append(need) or False)
+    assert calls == [100.0] and fit.cost == 100.0
+    assert len(seen) == 1 and seen[0] >= 0.0
