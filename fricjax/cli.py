@@ -561,8 +561,12 @@ def diagnose(
             on_stage=on_stage,
         )
     untested = diag.clock.not_tested()
-    if not diag.findings and untested:
-        typer.echo(f"nothing found among the candidates tested; {len(untested)} not tested")
+    if not diag.findings and diag.clock.skipped:
+        # cut short by the time limit: never "nothing is missing"
+        typer.echo(
+            f"nothing found among the candidates tested; {len(untested)} not tested "
+            "(time limit hit)"
+        )
     elif not diag.findings:
         typer.echo("no missing physics found (residual consistent with noise)")
     for f in diag.findings:

@@ -119,11 +119,16 @@ def residual_figure(diag: Diagnosis, path: Path) -> Path:
 def _verdict(diag: Diagnosis) -> str:
     named = [f["effect"] for f in diag.findings if f["effect"] != "unexplained"]
     unexplained = sum(f["effect"] == "unexplained" for f in diag.findings)
+    if not diag.findings and diag.clock.skipped:
+        # a diagnosis cut short cannot say that nothing is missing
+        return (
+            "**Nothing found among the candidates tested**: the time limit cut this "
+            "diagnosis short (see Time)."
+        )
     if not diag.findings:
-        tail = " (some were left untested: see Time)" if diag.clock.not_tested() else ""
         return (
             "**Nothing is missing**: no catalogue term passes the judge and the model fits the "
-            f"record to its noise{tail}."
+            "record to its noise."
         )
     parts = []
     if named:
