@@ -33,8 +33,9 @@ weighted, no tangent per impulse. The gains are trusted only where they predict 
 change of one random perturbation of x to :data:`POINTWISE_RTOL`. An impulse reaches at most
 h samples (:func:`_reach`: all but :data:`BAND_TOL` of its squared mass), so ``D Dᵀ`` is
 banded and ``tr Σ² = σ⁴‖D Dᵀ‖²_F`` is summed over blocks of rows against their neighbours
-only (same value to ~1e-10; 1 s axis record: 21 ms for the whole noise instead of 46 ms,
-the dense ``D Dᵀ`` alone was 20 ms).
+only (the same numbers to 1e-8, tested; 1 s axis record, quiet 2-core CPU: 31–39 ms for
+the whole noise, the 1 ms noise estimate included, against 46–48 ms with a tangent per
+impulse and the dense ``D Dᵀ``, which alone took 20 ms).
 
 Left out: noise of a measured drive input or force (``/u``, ``/F``) — it is independent of
 x's, and the problem holds it only filtered, so its level cannot be read from the data here;
