@@ -103,3 +103,50 @@ def test_a_start_no_step_improves_is_returned_unchanged():
     ).refined  # fmt: skip
     assert float(out.x[0]) == 0.5
     assert not bool(out.success)
+
+
+def test_the_decrement_stop_leaves_less_than_gain_tol_to_gain():
+    # with a box transform the residual in z is not linear, so LM needs several steps; the
+    # point it stops at must be within gain_tol of the minimum, which for a residual linear
+    # in θ is the Gauss–Newton decrement itself
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(50, 4))
+    b = rng.normal(size=50)
+    exact = np.linalg.lstsq(A, b, rcond=None)[0]
+    best = float(np.sum((A @ exact - b) ** 2))
+    fn = lambda th: jnp.asarray(A) @ th - jnp.asarray(b)  # noqa: E731
+    lo, hi = exact - 3.0, exact + 3.0
+    loose = RefineSettings(rtol=1e-14, atol=1e-14, max_steps=500)
+    for tol in (1e-2, 1e-6):
+        out = levenberg_marquardt(
+            fn, _with_jacobian(fn), jnp.asarray(lo + 0.5), lo, hi, jnp.ones(4, bool), loose, tol
+        ).refined
+        assert bool(out.success)
+        assert 0.0 <= float(out.cost_after) - best < tol
+    # the tighter tolerance takes more steps: the stop is the decrement's, not Cauchy's
+    steps = [
+        int(
+            levenberg_marquardt(
+                fn, _with_jacobian(fn), jnp.asarray(lo + 0.5), lo, hi, jnp.ones(4, bool), loose, t
+            ).refined.n_steps
+        )
+        for t in (1e-2, 1e-6)
+    ]
+    assert steps[0] < steps[1]
+
+
+def test_a_gain_beyond_the_bound_does_not_count():
+    # minimum at 5 outside the box [0, 2], start in the middle: the gain up to the bound
+    # (16 → 9) counts, the Gauss–Newton step's beyond it does not, or the fit would never
+    # stop (sine transform: z creeps to π/2)
+    fn = lambda th: th - 5.0  # noqa: E731
+    loose = RefineSettings(rtol=1e-14, atol=1e-14, max_steps=500)
+    out = levenberg_marquardt(
+        fn, _with_jacobian(fn), jnp.asarray([1.0]), jnp.asarray([0.0]), jnp.asarray([2.0]),
+        jnp.ones(1, bool), loose, 1e-2,
+    ).refined  # fmt: skip
+    assert bool(out.success)
+    assert int(out.n_steps) < 500
+    # it stops on the bound's side, with less than gain_tol left to the bound's cost 9
+    assert 1.9 < float(out.x[0]) <= 2.0
+    assert 0.0 <= float(out.cost_after) - 9.0 < 1e-2
