@@ -262,15 +262,17 @@ def converged(
     more: Callable[[float], bool] | None = None,
 ) -> OutputErrorFit:
     """An output-error fit (:func:`_fit`) from ``start`` (or continued from ``fit``),
-    restarted from its end until its cost falls by less than :data:`CONVERGED`:
-    Levenberg–Marquardt on output error often meets no tolerance within ``max_steps``.
+    restarted from its end until a restart lowers its cost by less than :data:`CONVERGED`,
+    whether or not the fit met its own tolerance: Levenberg–Marquardt's stop is local (its
+    Gauss–Newton decrement), and a restart with a fresh trust region can still descend
+    (0.272 s twin's base: stopped at 191.86 σ_x², two restarts reached 189.07).
     ``more(seconds)``: whether a round expected to take that long (the last one's wall
     time) may still start (a time limit); None: always."""
     began = time.perf_counter()
     fit = fit or _fit(problem, start, settings, states, n_directions)
     last = time.perf_counter() - began
     for _ in range(MAX_ROUNDS - 1):
-        if fit.success or (more is not None and not more(last)):
+        if more is not None and not more(last):
             break
         began = time.perf_counter()
         again = _fit(problem, fit.params, settings, (fit.states_x, fit.states_v), n_directions)

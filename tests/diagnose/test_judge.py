@@ -251,6 +251,19 @@ def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> No
     # 100 -> 90 -> 80 gain 10 each, 80 -> 79.9 gains less than CONVERGED: stop there
     assert calls == [100.0, 90.0, 80.0, 79.9] and fit.cost == 79.9
 
+    # a fit's own convergence flag does not end the rounds: LM's stop is local, and only a
+    # restart that gains less than CONVERGED shows the minimum within reach
+    def converged_fit(problem, start, settings, states, n_directions):
+        fit = fake_fit(problem, start, settings, states, n_directions)
+        return SimpleNamespace(**{**vars(fit), "success": True})
+
+    costs = iter([100.0, 97.0, 96.9])
+    calls.clear()
+    monkeypatch.setattr(judge, "_fit", converged_fit)
+    fit = judge.converged(None, {}, None)
+    assert calls == [100.0, 97.0, 96.9] and fit.cost == 96.9
+
+    monkeypatch.setattr(judge, "_fit", fake_fit)
     costs = iter([100.0, 90.0, 80.0])
     calls.clear()
     seen: list[float] = []
