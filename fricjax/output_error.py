@@ -677,7 +677,7 @@ def _fit_rows(
         def held(theta_aug: Array) -> Array:
             return jnp.where(keep, theta_aug, x0)
 
-        def stage(carry: tuple, weight: Array) -> tuple[tuple, tuple]:
+        def stage(carry: tuple, weight: Array) -> tuple[tuple, Refined]:
             x, _, _ = carry
             tied = eqx.tree_at(lambda m: m.weight, res, weight)
             out, r, jac = levenberg_marquardt(
@@ -696,7 +696,8 @@ def _fit_rows(
 
         r0, jac0 = jax.eval_shape(lambda th: jacobian_at(res, th), x0)
         zeros = (jnp.zeros(r0.shape, r0.dtype), jnp.zeros(jac0.shape, jac0.dtype))
-        (_, r, jac), outs = jax.lax.scan(stage, (x0, *zeros), weights)
+        (_, r, jac), stages = jax.lax.scan(stage, (x0, *zeros), weights)
+        outs: Refined = stages
         out = Refined(
             x=outs.x[-1],
             cost_before=outs.cost_before[0],
