@@ -39,11 +39,16 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     ``FRICJAX_COMPILATION_CACHE=0`` turns it off. The cache
     key is the compiled program itself (data embedded as constants included) plus the jax,
     XLA and platform versions, so a stale entry cannot be used; an unwritable directory
-    only disables the cache. Returns the directory, or None when off.
+    only disables the cache. Its ``programs/`` folder keeps the traced programs as well
+    (:mod:`fricjax.programs`, keyed on the fricjax source, the model structure, the
+    settings and the shapes), so that a later process skips tracing too: most of a warm
+    ``fricjax diagnose`` otherwise. Returns the directory, or None when off.
     """
     if os.environ.get("FRICJAX_COMPILATION_CACHE", "1") == "0":
         return None
     import jax
+
+    from fricjax.programs import set_store
 
     default = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fricjax" / "jax"
     where_to = Path(path or os.environ.get("FRICJAX_CACHE_DIR") or default)
@@ -55,6 +60,7 @@ def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
     # every program of a run is worth keeping: the small ones add up too
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    set_store(where_to / "programs")
     return where_to
 
 

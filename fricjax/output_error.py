@@ -139,6 +139,7 @@ from fricjax.levenberg import levenberg_marquardt
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
 from fricjax.problem import Problem, needs_input
+from fricjax.programs import stored
 from fricjax.refine import Refined, RefineSettings, _checked, uncertainty_at
 from fricjax.search.fast_compile import CLASSIC_EMITTERS
 
@@ -468,14 +469,15 @@ class OutputError(eqx.Module):
         return _structured(self, theta_aug)
 
 
-@jax.jit
+@stored
 def jacobian_at(
     residual: OutputError, theta_aug: Float[Array, " D"]
 ) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
     """Jitted :meth:`OutputError.value_and_jacobian`: ``(r_aug, ∂r_aug/∂θ_aug)`` at
     ``theta_aug`` (one compilation per residual shape). The residual's custom JVP and the
     fit's Jacobian at its end point call it, so the simulation's linearisation, the
-    costliest trace of the fit, is traced once and its jaxpr reused."""
+    costliest trace of the fit, is traced once and its jaxpr reused; called on arrays
+    (the candidates' screening), its program is stored (:mod:`fricjax.programs`)."""
     return residual.value_and_jacobian(theta_aug)
 
 
@@ -715,7 +717,7 @@ def _fit_rows(
 
 
 # compile time is most of a cold fit's time, and the classic emitter saves a fifth of it
-_fit_rows_jit = eqx.filter_jit(_fit_rows, compiler_options=CLASSIC_EMITTERS)
+_fit_rows_jit = stored(_fit_rows, compiler_options=CLASSIC_EMITTERS)
 
 
 def fit_output_error_batch(

@@ -41,6 +41,7 @@ from fricjax.errors import FricjaxError, where
 from fricjax.model.system import MASS, Model, cost
 from fricjax.model.term import GridSignals, Signals, TimeGrid, time_grid
 from fricjax.params import ParamSpec
+from fricjax.programs import stored
 from fricjax.units import axis_unit
 
 
@@ -126,7 +127,7 @@ class GridCost(eqx.Module):
         return cost(jnp.where(self.keep, r, 0.0))
 
 
-@eqx.filter_jit
+@stored
 def _call(fn: eqx.Module, theta: Float[Array, " d"]) -> Array:
     return fn(theta)
 

@@ -26,7 +26,6 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,6 +33,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from fricjax.errors import FricjaxError, where
+from fricjax.programs import stored
 from fricjax.search.fast_compile import FAST_COMPILE
 
 ResidualFn = Callable[[Float[Array, " d"]], Float[Array, " n"]]
@@ -242,12 +242,12 @@ def _refine_batch(
 # array leaves of the residual function (an eqx.Module / jax.tree_util.Partial holding the
 # data) as traced, so repeated calls with the same function object or new data of the same
 # shape reuse one compilation.
-_refine_one_jit = eqx.filter_jit(_refine_one)
-_refine_batch_jit = eqx.filter_jit(_refine_batch)
+_refine_one_jit = stored(_refine_one)
+_refine_batch_jit = stored(_refine_batch)
 # For a polish that runs once per process (a cold CLI run), where compiling the LM loop
 # costs seconds and running it tens of milliseconds (fricjax.search.fast_compile).
-_refine_one_fast = eqx.filter_jit(_refine_one, compiler_options=FAST_COMPILE)
-_refine_batch_fast = eqx.filter_jit(_refine_batch, compiler_options=FAST_COMPILE)
+_refine_one_fast = stored(_refine_one, compiler_options=FAST_COMPILE)
+_refine_batch_fast = stored(_refine_batch, compiler_options=FAST_COMPILE)
 
 
 def _check_box(
@@ -359,7 +359,7 @@ def compile_refine(
     x, lo, hi = _check_box(x0, lower, upper, batched=False)
     settings = _checked(settings)
     jitted = _refine_one_fast if fast_compile else _refine_one_jit
-    return jitted.lower(residual_fn, x, lo, hi, settings).compile()
+    return jitted.compiled(residual_fn, x, lo, hi, settings)
 
 
 def refine_many(
@@ -555,10 +555,8 @@ def _value_and_jacobian_program(
     return residual_fn(x), jax.jacfwd(residual_fn)(x)
 
 
-_value_and_jacobian = eqx.filter_jit(_value_and_jacobian_program)
-_value_and_jacobian_fast = eqx.filter_jit(
-    _value_and_jacobian_program, compiler_options=FAST_COMPILE
-)
+_value_and_jacobian = stored(_value_and_jacobian_program)
+_value_and_jacobian_fast = stored(_value_and_jacobian_program, compiler_options=FAST_COMPILE)
 
 
 def value_and_jacobian(

@@ -60,6 +60,7 @@ from jaxtyping import Array, Float
 from fricjax.data.noise import NoiseEstimate, estimate_noise
 from fricjax.data.preprocess import PreprocessSettings, derivatives
 from fricjax.problem import EquationError, Problem, stack_trees
+from fricjax.programs import stored
 from fricjax.refine import ResidualNoise
 
 #: Records up to this many raw samples sum exactly over the unit vectors of x.
@@ -90,7 +91,7 @@ def _tangents(
     return jax.vmap(one)(dx, dv, da)
 
 
-_tangents_jit = eqx.filter_jit(_tangents)
+_tangents_jit = stored(_tangents)
 
 
 @lru_cache(maxsize=4)
@@ -220,7 +221,7 @@ def _pointwise_gains(
     return result
 
 
-@eqx.filter_jit
+@stored
 def _tangents_many(
     residuals: EquationError, thetas: Float[Array, "B d"], dx: Array, dv: Array, da: Array
 ) -> Float[Array, "B K n"]:

@@ -51,6 +51,21 @@ def twin_problem(paper_config: Config, twin_path: Path):
     return build_problem(read_recording(twin_path), paper_config)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _no_disk_caches():
+    """The CLI's commands turn on the on-disk compilation cache and program store
+    (:func:`fricjax.api.enable_compilation_cache`) for the rest of their process: in the
+    test process, that would write to the user's cache folder and make later tests depend
+    on what an earlier run left there. Tests of the caches set their own folder."""
+    before = os.environ.get("FRICJAX_COMPILATION_CACHE")
+    os.environ["FRICJAX_COMPILATION_CACHE"] = "0"
+    yield
+    if before is None:
+        os.environ.pop("FRICJAX_COMPILATION_CACHE", None)
+    else:
+        os.environ["FRICJAX_COMPILATION_CACHE"] = before
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _compilations_freed_after_slow_modules(request: pytest.FixtureRequest):
     """After a module whose slow tests ran, drop jax's compiled programs.

@@ -42,9 +42,11 @@ def setup(tmp_path_factory: pytest.TempPathFactory):
 @pytest.fixture(scope="module")
 def client(tmp_path_factory: pytest.TempPathFactory):
     # the workers share one compilation cache: the second to need a program loads it
+    # (and the program store: the bit-for-bit comparison below covers stored programs)
     cache = tmp_path_factory.mktemp("jax_cache")
     before = os.environ.get("FRICJAX_CACHE_DIR")
     os.environ["FRICJAX_CACHE_DIR"] = str(cache)
+    os.environ["FRICJAX_COMPILATION_CACHE"] = "1"
     cluster = LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
     )
@@ -52,6 +54,7 @@ def client(tmp_path_factory: pytest.TempPathFactory):
     yield c
     c.close()
     cluster.close()
+    os.environ["FRICJAX_COMPILATION_CACHE"] = "0"  # the suite's setting (conftest)
     if before is None:
         os.environ.pop("FRICJAX_CACHE_DIR", None)
     else:
@@ -71,6 +74,8 @@ def test_dask_run_equals_the_in_process_run_bit_for_bit(setup, client: Client) -
     members, settings, local = setup
     on_dask = run_fleet(members, settings, shard_size=SHARD, client=client)
     assert_same(on_dask, local)
+    # the workers ran (and stored) the programs of the store, not jit's
+    assert any((Path(os.environ["FRICJAX_CACHE_DIR"]) / "programs").glob("*.jaxexport"))
 
 
 def test_a_worker_killed_mid_shard_loses_no_result(setup, client: Client) -> None:

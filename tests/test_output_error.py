@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fricjax import output_error
+from fricjax import output_error, programs
 from fricjax.config import load_config, parse_config
 from fricjax.data.recording import Recording
 from fricjax.data.twin import DEFAULT_NOISE_STD, PAPER_TRUTH
@@ -310,6 +310,29 @@ def test_a_fit_of_the_same_structure_and_shape_is_neither_traced_nor_compiled_ag
     assert fits["new data"].x_scale == pytest.approx(math.sqrt(2) * fit.x_scale, rel=0.1)
     held = fits["Fc fixed"]
     assert held.params["Fc"] == 21.0 and "Fc" not in held.names and held.cost > fit.cost
+
+
+def test_a_stored_fit_program_gives_the_same_fit_in_a_new_process(open_loop, tmp_path):
+    """The program store (fricjax.programs) on the fit: exported once, then loaded by a
+    "new process" (the in-memory programs dropped) without a trace, and both give the
+    fixture's fit, bit for bit."""
+    problem, fit = open_loop
+    settings = OutputErrorSettings(segments=3)
+    assert programs.set_store(tmp_path) is not None
+    try:
+        exported = fit_output_error(problem, START, settings)
+        assert any(tmp_path.glob("*.jaxexport"))
+        for stored in (output_error._fit_rows_jit, output_error.jacobian_at):
+            stored.loaded.clear()
+        traces = TRACES.copy()
+        loaded = fit_output_error(problem, START, settings)
+        assert TRACES == traces
+    finally:
+        programs.set_store(None)
+    for other in (exported, loaded):
+        assert other.n_steps == fit.n_steps and other.cost == fit.cost
+        np.testing.assert_array_equal(other.value, fit.value)
+        np.testing.assert_array_equal(other.std, fit.std)
 
 
 def test_batch_rows_equal_the_fits_whose_spec_fixes_their_pinned_parameters(open_loop):

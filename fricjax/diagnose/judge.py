@@ -65,6 +65,7 @@ from fricjax.output_error import (
 )
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
+from fricjax.programs import stored
 
 __all__ = [
     "CandidateFit",
@@ -552,13 +553,13 @@ def screen(
 # -- starts --------------------------------------------------------------------------------
 
 
-@eqx.filter_jit
+@stored
 def _columns(fn: EquationError, thetas: Float[Array, "B d"]) -> Float[Array, "B n"]:
     """Equation-error residuals [N] at a batch of parameter vectors."""
     return jax.vmap(fn)(thetas)
 
 
-@eqx.filter_jit
+@stored
 def _jacobian(fn: EquationError, theta: Float[Array, " d"]) -> Float[Array, "n d"]:
     """Equation-error Jacobian [N per parameter unit] at ``theta``."""
     return jax.jacfwd(fn)(theta)

@@ -50,6 +50,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Float
 
 from fricjax.errors import FricjaxError, where
+from fricjax.programs import stored
 from fricjax.search import csaa, dsaa, rdsa
 from fricjax.search.annealing import (
     SCHEDULES,
@@ -212,8 +213,8 @@ def _level_all(
     )
 
 
-_start = eqx.filter_jit(_start_states)
-_level = eqx.filter_jit(_level_all)
+_start = stored(_start_states)
+_level = stored(_level_all)
 
 
 def _bounds(lower: ArrayLike, upper: ArrayLike, source: object) -> tuple[np.ndarray, np.ndarray]:
@@ -637,9 +638,9 @@ def _fused_program(
     return jax.lax.while_loop(lambda r: r.phase != _DONE, body, first)
 
 
-_fused = eqx.filter_jit(_fused_program)
+_fused = stored(_fused_program)
 # run_chains_fused's ``fast_compile`` (fricjax.search.fast_compile)
-_fused_fast_compile = eqx.filter_jit(_fused_program, compiler_options=FAST_COMPILE_LOOPS)
+_fused_fast_compile = stored(_fused_program, compiler_options=FAST_COMPILE_LOOPS)
 
 
 def relative_temperatures(settings: AnnealSettings) -> np.ndarray:
@@ -748,7 +749,7 @@ def run_chains_fused(
         sharding,
     )
     start = time.perf_counter()
-    program = (_fused_fast_compile if fast_compile else _fused).lower(*args).compile()
+    program = (_fused_fast_compile if fast_compile else _fused).compiled(*args)
     ready = time.perf_counter() - start
     out = jax.device_get(program(*args))
     elapsed = time.perf_counter() - start
