@@ -469,16 +469,24 @@ class OutputError(eqx.Module):
         return _structured(self, theta_aug)
 
 
+@jax.jit
+def _value_and_jacobian(
+    residual: OutputError, theta_aug: Float[Array, " D"]
+) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
+    return residual.value_and_jacobian(theta_aug)
+
+
 @stored
 def jacobian_at(
     residual: OutputError, theta_aug: Float[Array, " D"]
 ) -> tuple[Float[Array, " m"], Float[Array, "m D"]]:
     """Jitted :meth:`OutputError.value_and_jacobian`: ``(r_aug, ∂r_aug/∂θ_aug)`` at
-    ``theta_aug`` (one compilation per residual shape). The residual's custom JVP and the
-    fit's Jacobian at its end point call it, so the simulation's linearisation, the
-    costliest trace of the fit, is traced once and its jaxpr reused; called on arrays
-    (the candidates' screening), its program is stored (:mod:`fricjax.programs`)."""
-    return residual.value_and_jacobian(theta_aug)
+    ``theta_aug`` (one compilation per residual shape). The residual's custom JVP, the
+    fit's iterations and its end point call it. Its body is a jitted function of its own,
+    so that the simulation's linearisation, the costliest trace of the fit, is traced once
+    per process and its jaxpr reused: inside the fit's program, and where a call on arrays
+    (the candidates' screening) exports it to the program store (:mod:`fricjax.programs`)."""
+    return _value_and_jacobian(residual, theta_aug)
 
 
 @jax.custom_jvp

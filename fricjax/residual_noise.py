@@ -58,7 +58,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.data.noise import NoiseEstimate, estimate_noise
-from fricjax.data.preprocess import PreprocessSettings, derivatives
+from fricjax.data.preprocess import PreprocessSettings, derivative_columns
 from fricjax.problem import EquationError, Problem, stack_trees
 from fricjax.programs import stored
 from fricjax.refine import ResidualNoise
@@ -103,8 +103,9 @@ def _impulse_responses(
     the step only, not on the data, so a fleet or joint fit of equal records builds them once
     (three [n_raw, m] arrays, ≤ 24 MB at EXACT_UP_TO)."""
     t_raw = np.arange(n_raw) * dt
-    rows = [derivatives(t_raw, e, settings) for e in np.eye(n_raw)]
-    out = tuple(np.stack([getattr(d, f) for d in rows]) for f in ("x", "v", "a"))
+    out = tuple(
+        np.ascontiguousarray(c.T) for c in derivative_columns(t_raw, np.eye(n_raw), settings)
+    )
     for a in out:
         a.flags.writeable = False  # shared by every caller through the cache
     return out  # type: ignore[return-value]
@@ -346,10 +347,8 @@ def _dense_moments(
         if exact:
             dx, dv, da = (c[start:stop] for c in _impulse_responses(settings, n_raw, dt))
         else:
-            draws = [
-                derivatives(t_raw, rng.standard_normal(n_raw), settings) for _ in range(start, stop)
-            ]
-            dx, dv, da = (np.stack([getattr(d, f) for d in draws]) for f in ("x", "v", "a"))
+            draws = rng.standard_normal((stop - start, n_raw))
+            dx, dv, da = (c.T for c in derivative_columns(t_raw, draws.T, settings))
         pad = ((0, _CHUNK - (stop - start)), (0, 0))
         dx, dv, da = (np.pad(c, pad) for c in (dx, dv, da))
         dr = np.asarray(_tangents_jit(residual, theta, dx, dv, da))[: stop - start]

@@ -110,19 +110,26 @@ def _trim(y: np.ndarray) -> np.ndarray:
 
 
 def _steady_filter(x: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Causal filtering of x started in steady state for x[0] (scipy's ``zi·x[0]``)."""
-    lead = np.full(h.shape[0], x[0])
-    # a response past _LOOP_MAX samples makes the direct product quadratic in its length
-    conv = fftconvolve if h.shape[0] > _LOOP_MAX else np.convolve
-    return conv(np.concatenate([lead, x]), h)[h.shape[0] : h.shape[0] + x.shape[0]]
+    """Causal filtering of x along its first axis ([n] or [n, k]) started in steady state
+    for x[0] (scipy's ``zi·x[0]``)."""
+    lead = np.broadcast_to(x[0], (h.shape[0], *x.shape[1:]))
+    ext = np.concatenate([lead, x])
+    if x.ndim == 1:
+        # a response past _LOOP_MAX samples makes the direct product quadratic in its length
+        conv = fftconvolve if h.shape[0] > _LOOP_MAX else np.convolve
+        full = conv(ext, h)
+    else:  # many columns (the preprocessing's impulse responses): one FFT product
+        full = fftconvolve(ext, h.reshape(-1, *([1] * (x.ndim - 1))), axes=0)
+    return full[h.shape[0] : h.shape[0] + x.shape[0]]
 
 
 def filtfilt_lowpass(
     x: Float[np.ndarray, " n"], order: int, cutoff_hz: float, fs: float, padlen: int
 ) -> Float[np.ndarray, " n"]:
-    """Zero-phase Butterworth low-pass of x [n] with odd padding of ``padlen`` samples
-    (``scipy.signal.sosfiltfilt(butter(order, cutoff_hz, fs=fs, output="sos"), x,
-    padtype="odd", padlen=padlen)``); needs ``0 ≤ padlen < n``."""
+    """Zero-phase Butterworth low-pass of x [n] (or of each column of x [n, k]) with odd
+    padding of ``padlen`` samples (``scipy.signal.sosfiltfilt(butter(order, cutoff_hz,
+    fs=fs, output="sos"), x, padtype="odd", padlen=padlen, axis=0)``); needs
+    ``0 ≤ padlen < n``."""
     x = np.asarray(x, dtype=np.float64)
     n = x.shape[0]
     if not 0 <= padlen < n:

@@ -487,16 +487,21 @@ def diagnose(
         findings += refused
     elif lof_after < settings.alpha and not named:
         findings.append(_unexplained(final, lof_after, evidence.nu))
+    sim_before = simulation_error(base)
+    sim_after = sim_before if final is base else simulation_error(final)
     fit = {
         label: {
             "ems": m.problem.ems(m.theta),
             "output_error_cost": m.cost,
             "lack_of_fit_p": lof,
             "position_rms_m": m.fit.position_rms,
-            "simulation_rms_m": simulation_error(m),
+            "simulation_rms_m": sim,
             "n_free": m.n_free,
         }
-        for label, m, lof in (("before", base, lof_before), ("after", final, lof_after))
+        for label, m, lof, sim in (
+            ("before", base, lof_before, sim_before),
+            ("after", final, lof_after, sim_after),
+        )
     }
     return Diagnosis(
         recording=recording or problem.name,

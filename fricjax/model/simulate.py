@@ -82,7 +82,6 @@ reduced over the batch it stays one branch.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -93,6 +92,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from fricjax.errors import FricjaxError, where
 from fricjax.model.system import Model
 from fricjax.model.term import Signals
+from fricjax.programs import stored
 
 # Hestenes reflection: Σ_j c_j·μ_j^k = 1 for k = 0..3, so the extension matches the branch's
 # value and first three derivatives at v = 0 (smooth enough for RK4 and the cubic Hermite).
@@ -244,7 +244,6 @@ def _check(model: Model, p: Mapping[str, Array], t: Array, u: Array | None, subs
         )
 
 
-@partial(jax.jit, static_argnames=("model", "substeps"))
 def simulate(
     model: Model,
     p: Mapping[str, Float[ArrayLike, ""]],
@@ -269,7 +268,32 @@ def simulate(
 
     Returns:
         :class:`Trajectory` (x, v, a), each [n], ``x[0] = x0``, ``v[0] = v0``.
+
+    Compiled once per (model, substeps, shapes): every argument but those two is traced,
+    Python numbers included; called on arrays, its program is stored
+    (:mod:`fricjax.programs`).
     """
+    return _simulate_program(
+        model,
+        {name: jnp.asarray(value) for name, value in p.items()},
+        jnp.asarray(t),
+        jnp.asarray(x0),
+        jnp.asarray(v0),
+        None if u is None else jnp.asarray(u),
+        substeps,
+    )
+
+
+@stored
+def _simulate_program(
+    model: Model,
+    p: Mapping[str, Float[Array, ""]],
+    t: Float[Array, " n"],
+    x0: Float[Array, ""],
+    v0: Float[Array, ""],
+    u: Float[Array, " n"] | None,
+    substeps: int,
+) -> Trajectory:
     return _simulate(model, p, t, x0, v0, u, substeps, skip_idle=True)
 
 

@@ -18,6 +18,7 @@ from scipy import signal
 from fricjax.data.preprocess import (
     Derivatives,
     PreprocessSettings,
+    derivative_columns,
     derivatives,
     measured_force,
     noise_gains,
@@ -207,6 +208,22 @@ def test_trim_drops_filtered_ends_and_passes_u_f() -> None:
     np.testing.assert_array_equal(raw.u, u)
     np.testing.assert_array_equal(raw.F, F)
     assert derivatives(t, x, BUTTER).u is None
+
+
+@pytest.mark.parametrize("settings", [BUTTER, SAVGOL], ids=["butterworth", "savgol"])
+def test_columns_are_the_derivatives_of_each_column(settings: PreprocessSettings) -> None:
+    """The batched preprocessing (the residual noise's impulse responses and draws) is the
+    one-record preprocessing of every column, to rounding."""
+    t, x, _, _ = known_signal(0.272)
+    rng = np.random.default_rng(2)
+    xs = np.column_stack([x, rng.standard_normal(t.size), np.eye(t.size)[:, 100]])
+    got = derivative_columns(t, xs, settings)
+    for k in range(xs.shape[1]):
+        one = derivatives(t, xs[:, k], settings)
+        for name, col in zip(("x", "v", "a"), got, strict=True):
+            ref = getattr(one, name)
+            # (savgol's end windows are least-squares fits: 1e-10 of the scale apart)
+            np.testing.assert_allclose(col[:, k], ref, rtol=0, atol=1e-9 * np.max(np.abs(ref)))
 
 
 @pytest.mark.parametrize(
