@@ -168,8 +168,15 @@ def _traced(args: Any) -> bool:
 class _Program:
     """A deserialized (or just exported) program: flat arrays in, the output rebuilt."""
 
-    def __init__(self, exported: jax.export.Exported, outputs: tuple[Any, Any], options: Any):
-        self.call = jax.jit(exported.call, compiler_options=options)
+    def __init__(
+        self, name: str, exported: jax.export.Exported, outputs: tuple[Any, Any], options: Any
+    ):
+        def call(*leaves: Any) -> Any:
+            return exported.call(*leaves)
+
+        # named for the function, so that jax's compile events and profiles tell them apart
+        call.__name__ = call.__qualname__ = name
+        self.call = jax.jit(call, compiler_options=options)
         self.structure, self.static = outputs
 
     def __call__(self, leaves: list[Any]) -> Any:
@@ -235,7 +242,7 @@ class Stored(Generic[P, R]):
             exported = jax.export.deserialize(serialized)
         except Exception:  # absent, truncated or from an incompatible jax: trace instead
             return None
-        return _Program(exported, outputs, self.options)
+        return _Program(self.fn.__name__, exported, outputs, self.options)
 
     def _export(self, path: Path, args: Any, kwargs: Any) -> _Program | None:
         dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
@@ -248,6 +255,8 @@ class Stored(Generic[P, R]):
             out_leaves, out_structure = jax.tree.flatten(out_dynamic)
             outputs.append((out_structure, out_static))
             return out_leaves
+
+        flat.__name__ = flat.__qualname__ = self.fn.__name__
 
         specs = [
             jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False))
@@ -265,7 +274,7 @@ class Stored(Generic[P, R]):
             write_bytes_atomic(path, blob)
         except Exception:  # an output that does not pickle, a full disk: keep it in memory
             pass
-        return _Program(exported, outputs[0], self.options)
+        return _Program(self.fn.__name__, exported, outputs[0], self.options)
 
 
 def stored(fn: Callable[P, R], *, compiler_options: dict[str, Any] | None = None) -> Stored[P, R]:
