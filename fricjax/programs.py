@@ -20,8 +20,9 @@ The key (:func:`signature`) is a SHA-256 of
 - every static input: the structure of the arguments (equinox modules' static fields,
   such as the model's terms, included) and the value of every non-array leaf;
 - the shape, dtype and weak type of every array leaf;
-- the fricjax source (every ``.py`` file of the package), the jax and jaxlib versions,
-  the platform and the ``jax_enable_x64`` flag.
+- the fricjax source (every ``.py`` file of the package), the versions of jax, jaxlib and
+  the libraries whose code is traced into the programs (equinox, optimistix, lineax,
+  numpy, scipy), the platform and the ``jax_enable_x64`` flag.
 
 A static value whose text is not reproducible across processes (a lambda, a closure, an
 object printed with its memory address) makes the call unstorable: it runs through
@@ -36,9 +37,9 @@ import enum
 import functools
 import hashlib
 import inspect
-import os
 import pickle
 from collections.abc import Callable, Mapping
+from importlib import metadata
 from pathlib import Path
 from typing import Any, Generic, ParamSpec, TypeVar
 
@@ -71,27 +72,29 @@ def set_store(folder: str | Path | None) -> Path | None:
     return path
 
 
-def store() -> Path | None:
-    """The folder set by :func:`set_store` (None: off)."""
-    return _STORE
+# whose code ends up in the traced programs (or computes constants folded into them)
+_TRACED_LIBRARIES = ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "scipy")
 
 
 @functools.cache
 def _environment() -> str:
-    """The fricjax source and jax's versions and settings: a program traced under any
-    other is not reused."""
-    import jaxlib
-
+    """The fricjax source, the traced libraries' versions and jax's settings: a program
+    traced under any other is not reused."""
     root = Path(__file__).resolve().parent
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
         digest.update(str(path.relative_to(root)).encode())
         digest.update(path.read_bytes())
+    versions = []
+    for package in _TRACED_LIBRARIES:
+        try:
+            versions.append(f"{package} {metadata.version(package)}")
+        except metadata.PackageNotFoundError:
+            versions.append(f"{package} absent")
     return "|".join(
         (
             digest.hexdigest(),
-            jax.__version__,
-            jaxlib.__version__,
+            *versions,
             jax.default_backend(),
             str(jax.config.read("jax_enable_x64")),
         )
@@ -281,10 +284,3 @@ def stored(fn: Callable[P, R], *, compiler_options: dict[str, Any] | None = None
     """``fn`` jitted as ``equinox.filter_jit`` does, its programs stored on disk while a
     store is set (module docstring). Use it for programs whose trace costs seconds."""
     return Stored(fn, compiler_options)
-
-
-def store_from_environment() -> None:
-    """``$FRICJAX_PROGRAM_STORE`` as the store folder, when it is set (tests, workers)."""
-    folder = os.environ.get("FRICJAX_PROGRAM_STORE")
-    if folder:
-        set_store(folder)
