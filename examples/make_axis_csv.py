@@ -13,8 +13,9 @@ of 1 µm, the load cell F with 0.05 N; 2 s at 1 kHz.
 Two runs of the rig: ``axis.csv`` (identification) and ``axis_validation.csv`` (another
 force profile and noise draw, to check the model on data it was not fitted to).
 
-Usage: ``python examples/make_axis_csv.py [FOLDER]`` (default: beside this script; the same
-files bit for bit on every run: the noise has fixed seeds).
+Usage: ``python examples/make_axis_csv.py [FOLDER]`` (default: beside this script). The noise
+has fixed seeds, so a run writes the same files bit for bit on one machine; another CPU may
+round the integration's last digits differently (about 1e-13 m, far below the 1 µm noise).
 """
 
 from __future__ import annotations

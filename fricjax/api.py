@@ -15,7 +15,7 @@ import numpy as np
 from fricjax.config import Config, load_config
 from fricjax.data.noise import estimate_noise
 from fricjax.data.preprocess import PreprocessSettings, derivatives
-from fricjax.data.recording import Recording, read_recording
+from fricjax.data.recording import MAX_MAGNITUDE, Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import check_outputs
 from fricjax.params import check_values
@@ -347,9 +347,18 @@ def cost_at(
         problem = _with_fixed(problem, fixed_changes)
     # a twin's truth also holds generator-only entries (noise_std, seed, model): skipped
     theta = problem.theta({k: v for k, v in named.items() if k in problem.spec})
+    total = problem.cost(theta)
+    if not math.isfinite(total):
+        culprit = problem.model.overflowing(
+            problem.spec.as_dict(theta), problem.signals, MAX_MAGNITUDE
+        )
+        raise FricjaxError(
+            f"{where(source)}: the cost is not finite at these parameters (overflows: "
+            f"{culprit or 'the residual'}); no cost to report"
+        )
     return {
         "axis": cfg.axis,
-        "cost": problem.cost(theta),
+        "cost": total,
         "ems": problem.ems(theta),
         "n": problem.n,
         "source": source,

@@ -85,8 +85,13 @@ class Domain:
 
 #: Any real number (the default: offsets, phases, amplitudes whose sign is a phase shift).
 REAL = Domain()
-#: Strictly positive: masses, Stribeck velocities, shape exponents, frequencies.
+#: Strictly positive: Stribeck velocities, shape exponents, frequencies.
 POSITIVE = Domain(0.0, low_open=True)
+#: A moving mass [kg] (or a moment of inertia [kg·m²] on a rotary axis): positive and at
+#: most 1e8. The heaviest bodies moved on guides or bearings (a ship lift's caisson with its
+#: water, ~1e7 kg) are an order of magnitude below, so a larger value is a typo or a wrong
+#: unit, not a rig.
+MASS_DOMAIN = Domain(0.0, 1e8, low_open=True)
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ import h5py
 import numpy as np
 
 from fricjax.config import Config
-from fricjax.data.recording import Recording
+from fricjax.data.recording import MAX_MAGNITUDE, Recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.limits import check_substeps
@@ -168,6 +168,13 @@ def simulate_against(
         stop=trim + m,
         v0=float(problem.v[0]),
     )
+    if not all(np.all(np.isfinite(arr)) for arr in (xs, vs, acc)):
+        culprit = problem.model.overflowing(p, problem.signals, MAX_MAGNITUDE)
+        raise FricjaxError(
+            f"{where(source)}: the simulation is not finite at these parameters "
+            f"({'overflows: ' + culprit if culprit else 'the motion diverges'}); "
+            "nothing to compare"
+        )
     mass = float(p["mass"])
     recorded = {
         "x": np.asarray(problem.x),

@@ -32,13 +32,15 @@ def test_help_lists_the_commands() -> None:
         assert command in out.stdout
 
 
-def test_twin_regenerates_the_bundled_file_bit_for_bit(tmp_path: Path) -> None:
+def test_twin_regenerates_the_bundled_file(tmp_path: Path) -> None:
+    # Bit for bit only on the machine that wrote it: another CPU rounds the simulator's last
+    # digits differently. The time grid and mass are exact; x agrees far below its 24 µm noise.
     out = fricjax("twin", str(tmp_path / "t.h5"))
     assert out.returncode == 0, out.stderr
-    assert (
-        read_recording(tmp_path / "t.h5").sha256()
-        == read_recording(ROOT / "data" / "paper_twin.h5").sha256()
-    )
+    made, bundled = read_recording(tmp_path / "t.h5"), read_recording(ROOT / "data/paper_twin.h5")
+    np.testing.assert_array_equal(made.t, bundled.t)
+    assert made.mass == bundled.mass and made.x.shape == bundled.x.shape
+    np.testing.assert_allclose(made.x, bundled.x, rtol=0, atol=1e-3 * 24e-6)
 
 
 def test_cost_at_truth_is_near_the_noise_level() -> None:

@@ -20,10 +20,20 @@ def _generator():
 
 
 def test_committed_recordings_are_the_generated_ones(tmp_path: Path) -> None:
+    # The generator integrates with solve_ivp and numpy's sin/exp, whose last bits depend on
+    # the CPU's vector unit: another machine writes other last digits. What must hold is
+    # the layout exactly (header, length, time grid) and the signals far below their noise.
     gen = _generator()
     gen.main(tmp_path)
     for name in gen.RUNS:
-        assert (tmp_path / name).read_bytes() == (EXAMPLES / name).read_bytes(), name
+        made, shipped = (tmp_path / name).read_text(), (EXAMPLES / name).read_text()
+        assert made.splitlines()[0] == shipped.splitlines()[0] == "t,x,u", name
+        a = np.loadtxt(tmp_path / name, delimiter=",", skiprows=1)
+        b = np.loadtxt(EXAMPLES / name, delimiter=",", skiprows=1)
+        assert a.shape == b.shape == (int(gen.RATE * gen.DURATION), 3), name
+        np.testing.assert_array_equal(a[:, 0], b[:, 0])
+        np.testing.assert_allclose(a[:, 1], b[:, 1], rtol=0, atol=1e-3 * gen.NOISE_X)
+        np.testing.assert_allclose(a[:, 2], b[:, 2], rtol=0, atol=1e-3 * gen.NOISE_F)
 
 
 def test_generated_motion_satisfies_the_friction_law() -> None:

@@ -616,3 +616,62 @@ def test_the_command_line_refuses_bad_files_in_one_line_with_status_2(tmp_path: 
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
         assert lines[0].startswith("error: ") and expected in lines[0], lines[0]
+
+
+# ------------------------------------------ values that overflow, names a model does not take
+
+
+def _truth_with(tmp_path: Path, **changes: float) -> Path:
+    """The twin's generating parameters as a TOML parameter file, with ``changes``."""
+    from fricjax.data.twin import PAPER_TRUTH
+
+    values = {**PAPER_TRUTH, **changes}
+    path = tmp_path / "p.toml"
+    path.write_text("".join(f"{k} = {v!r}\n" for k, v in values.items()))
+    return path
+
+
+def test_an_overflowing_parameter_is_an_error_never_a_printed_answer(tmp_path: Path) -> None:
+    from fricjax.api import cost_at, simulate_recording
+
+    params = _truth_with(tmp_path, Fv=1e300)  # finite and positive, but the force overflows
+    ok, value = outcome(lambda: cost_at(TWIN, PAPER, params=params))
+    assert_refused(ok, value, str(params), "not finite", "Fv = 1e+300")
+    out = tmp_path / "sim"
+    ok, value = outcome(lambda: simulate_recording(TWIN, params=params, config=PAPER, out=out))
+    assert_refused(ok, value, str(params), "not finite", "Fv = 1e+300")
+    assert not out.exists() or not any(out.iterdir())  # nothing written full of NaN
+    # the same file at the truth's Fv gives a finite cost: the refusal is the value's
+    ok, value = outcome(lambda: cost_at(TWIN, PAPER, params=_truth_with(tmp_path)))
+    assert ok and math.isfinite(value["cost"])
+
+
+def test_show_refuses_a_parameter_name_the_model_does_not_take(tmp_path: Path) -> None:
+    path = tmp_path / "r.results.h5"
+    write_results(ResultsFile(runs=[_run()], attrs=_results_attrs()), path)
+    with h5py.File(path, "r+") as f:
+        names = [n.decode() for n in f["runs/csaa/params/names"][()]]
+        names[0] = "Fq"
+        del f["runs/csaa/params/names"]
+        f["runs/csaa/params/names"] = np.array(names, dtype=h5py.string_dtype())
+    ok, value = outcome(lambda: show_results(path))
+    assert_refused(ok, value, str(path), "/runs/csaa/params/names", "'Fq'")
+
+
+def test_a_mass_beyond_any_rig_is_refused_naming_it() -> None:
+    ok, value = outcome(lambda: read_recording(TWIN, mass=1e300))
+    assert_refused(ok, value, "--mass", "1e+300", "physical range")
+    ok, value = outcome(lambda: read_recording(TWIN, mass=1e8))  # the largest accepted
+    assert ok and value.mass == 1e8
+
+
+def test_twin_refuses_a_duration_it_cannot_simulate_in_one_line(tmp_path: Path) -> None:
+    for duration in ("nan", "1e9", "-1"):
+        proc = _cli("twin", tmp_path / "t.h5", "--duration", duration)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        # the range accepted at 1 kHz: two samples to 1e8 RK4 steps of 16 per sample
+        assert lines[0].startswith("error: twin: --duration") and "6250 s" in lines[0], lines
+        if duration == "1e9":
+            assert "1e+12 samples" in lines[0] and "GiB" in lines[0], lines  # the memory
+    assert not (tmp_path / "t.h5").exists()

@@ -53,6 +53,7 @@ from jaxtyping import Float
 
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import write_hdf5_atomic, write_text_atomic
+from fricjax.params import MASS_DOMAIN
 
 __all__ = [
     "MAX_STEP_JITTER",
@@ -347,6 +348,11 @@ def _check_mass(mass: Any, label: str) -> float:
     )
     if not ok or not math.isfinite(float(mass)) or float(mass) <= 0:
         raise FricjaxError(f"{label}: must be a positive finite number of kg, got {mass!r}")
+    if not MASS_DOMAIN.contains(float(mass)):
+        raise FricjaxError(
+            f"{label}: {float(mass):g} kg is outside the physical range of a moving mass "
+            f"({MASS_DOMAIN}): a typo or a wrong unit?"
+        )
     return float(mass)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from fricjax.data.recording import Recording, write_recording
 from fricjax.errors import FricjaxError, where
+from fricjax.limits import F64, MAX_RK4_STEPS
 from fricjax.model.drive import HarmonicDrive
 from fricjax.model.friction import StribeckFriction
 from fricjax.model.simulate import simulate
@@ -78,8 +79,24 @@ def paper_twin(
     Returns:
         The recording (t [n], x [n], mass) and the truth mapping written to ``/truth``.
     """
-    if duration <= 0 or rate <= 0 or noise_std < 0:
-        raise FricjaxError("twin: duration, rate must be > 0 and noise_std >= 0")
+    if not (math.isfinite(rate) and rate > 0):
+        raise FricjaxError(f"twin: --rate: must be a finite number > 0, got {rate:g}")
+    if not (math.isfinite(noise_std) and noise_std >= 0):
+        raise FricjaxError(f"twin: --noise-std: must be a finite number >= 0, got {noise_std:g}")
+    # the simulator steps n × substeps RK4 steps (fricjax.limits), at least two samples
+    longest = MAX_RK4_STEPS / substeps / rate
+    if not (math.isfinite(duration) and 2 / rate <= duration <= longest):
+        n_asked = duration * rate if math.isfinite(duration) else math.nan
+        size = (
+            f" ({n_asked:.3g} samples, {F64 * n_asked * 4 / 2**30:.3g} GiB of signals)"
+            if math.isfinite(n_asked) and n_asked > 0
+            else ""
+        )
+        raise FricjaxError(
+            f"twin: --duration: {duration:g} s{size} is outside the range a twin is "
+            f"simulated for at {rate:g} Hz: {2 / rate:g} s to {longest:g} s "
+            f"({MAX_RK4_STEPS:.0e} RK4 steps of {substeps} per sample)"
+        )
     params = dict(PAPER_TRUTH if truth is None else truth)
     n = round(duration * rate)
     t = np.arange(n, dtype=np.float64) / rate

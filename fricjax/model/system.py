@@ -17,17 +17,18 @@ so the moving mass is one more linear coefficient (its column is ``a``); when it
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from fricjax.errors import FricjaxError
 from fricjax.model.term import Basis, Groups, Signals, Term, no_basis
-from fricjax.params import POSITIVE, Named, Param
+from fricjax.params import MASS_DOMAIN, Named, Param
 
-MASS = Param("mass", "kg", 1e-6, 1e6, 1.0, free=False, domain=POSITIVE)
+MASS = Param("mass", "kg", 1e-6, 1e6, 1.0, free=False, domain=MASS_DOMAIN)
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,23 @@ class Model:
     def parameters(self) -> tuple[Param, ...]:
         """Every parameter the terms read, plus the moving mass."""
         return (*(q for t in self.terms for q in t.parameters()), MASS)
+
+    def overflowing(self, p: Mapping[str, float], s: Signals, limit: float) -> str:
+        """Which term's force is too large to square and sum at ``p`` over signals ``s``
+        [n]: not finite, or ``max|F|·√n > limit`` (the size whose squares still sum to a
+        finite float64). In words, with the term's parameter values ("stribeck (Fc = 30,
+        Fv = 1e+300, ...)"); the mass times ``a`` when no term is; "" when none is."""
+        named = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in p.items()}
+        root_n = float(np.sqrt(np.size(s.t)))
+        bad = []
+        for term in self.terms:
+            size = float(jnp.max(jnp.abs(term.force(named, s))))
+            if not size * root_n <= limit:
+                values = ", ".join(f"{q} = {float(p[q]):g}" for q in term.param_names if q in p)
+                bad.append(f"{term.name} ({values})")
+        if not bad and MASS.name in p:
+            bad.append(f"the mass times the acceleration (mass = {float(p[MASS.name]):g})")
+        return "; ".join(bad)
 
     def with_terms(self, extra: Sequence[Term]) -> Model:
         return Model((*self.terms, *extra))

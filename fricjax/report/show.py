@@ -258,8 +258,14 @@ def _check_domains(path: str | Path, results: ResultsFile) -> None:
     for run in results.runs:
         for name, value in run.params.items():
             base = split_name(name)[0]  # a joint run's Fc[2] is an Fc
-            if base in spec:
-                check_value(spec[base], value, where(path, f"/runs/{run.label}: {name}"))
+            if base not in spec:
+                field = "params/names" if name in run.names else "params: fixed attrs"
+                raise FricjaxError(
+                    f"{where(path, f'/runs/{run.label}/{field}')}: {name!r} is not a "
+                    f"parameter of the model in the file's config (it takes: "
+                    f"{', '.join(spec.names)})"
+                )
+            check_value(spec[base], value, where(path, f"/runs/{run.label}: {name}"))
 
 
 def show_results(path: str | Path, *, recording: str | Path | None = None) -> str:
