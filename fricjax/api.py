@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 import os
+import threading
 import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -117,6 +118,7 @@ def init_config(
     harmonics: int = 3,
     mass: float | None = None,
     axis: str | None = None,
+    u_unit: str | None = None,
     force: bool = False,
 ) -> tuple[str, Path]:
     """``fricjax init-config``: a commented starting config from the recording's own scale
@@ -131,6 +133,7 @@ def init_config(
         harmonics=harmonics,
         mass=mass,
         axis=axis,
+        u_unit=u_unit,
     )
     return text, write_scaffold(out, text, force=force)
 
@@ -621,12 +624,14 @@ def diagnose_recording(
     mass: float | None = None,
     overrides: dict[str, Any] | None = None,
     on_stage: Callable[[StageEvent], None] | None = None,
+    stop: threading.Event | None = None,
 ) -> tuple[Any, dict[str, Path]]:
     """``fricjax diagnose``: base fit, catalogue scored and refitted; writes DIR/diagnosis.json.
 
     ``overrides``: ``[diagnose]`` keys set from the command line (``time_limit`` among
     them); ``on_stage``: called with each :class:`~fricjax.diagnose.stages.StageEvent`
-    (progress). Never reads ``/truth``: the recording is read through
+    (progress); ``stop``: a stop request from another thread (Ctrl-C): what was judged
+    is written, marked interrupted. Never reads ``/truth``: the recording is read through
     :func:`read_recording`, which ignores that group.
     """
     import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
@@ -649,6 +654,7 @@ def diagnose_recording(
         validation=val,
         recording=str(recording),
         on_stage=on_stage,
+        stop=stop,
     )
     return diag, write_diagnosis(diag, out)
 

@@ -7,8 +7,10 @@ Every command maps onto one API call; a user mistake (:class:`FricjaxError`) pri
 from __future__ import annotations
 
 import os
+import signal
 import sys
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
@@ -17,6 +19,7 @@ import typer
 from typer._click.exceptions import NoArgsIsHelpError  # typer vendors click (pinned <0.30)
 from typer.exceptions import Abort, TyperException
 
+from fricjax.diagnose.stages import TIME_LIMIT_S as DIAGNOSE_TIME_LIMIT
 from fricjax.errors import EXIT, FricjaxError, OutputFault
 
 app = typer.Typer(
@@ -207,8 +210,9 @@ def identify(
     objective: Annotated[
         str | None,
         typer.Option(
-            help="equation (seed eq. 11) | simulation (then output error with multiple "
-            "shooting from the equation-error estimate; default: [search].objective)"
+            help="auto (default: output error where the equation error is not noise) | "
+            "equation (seed eq. 11) | simulation (then output error with multiple shooting "
+            "from the equation-error estimate); default: [search].objective"
         ),
     ] = None,
     out: Annotated[Path | None, typer.Option(help="Results file (.h5)")] = None,
@@ -492,8 +496,15 @@ def _stage_progress(quiet: bool, console: Any = None) -> Iterator[Any]:
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     console = console or Console(stderr=True)
-    if quiet or not console.is_terminal:
+    if quiet:
         yield None
+        return
+    if not console.is_terminal:
+        # a log file: one plain line per stage change and per candidate, no control codes
+        def log_line(event: Any) -> None:
+            typer.echo(f"{event.elapsed_s:8.1f} s  {event.stage}: {event.detail}", err=True)
+
+        yield log_line
         return
     columns = (SpinnerColumn(), TimeElapsedColumn(), TextColumn("{task.description}"))
     with Progress(*columns, console=console, transient=True) as bar:
@@ -530,12 +541,16 @@ def diagnose(
     max_terms: Annotated[int | None, typer.Option(help="Most terms to add")] = None,
     time_limit: Annotated[
         float | None,
-        typer.Option(help="Seconds for the whole diagnosis; what it leaves out is reported"),
+        typer.Option(
+            help=f"Seconds for the whole diagnosis (default {DIAGNOSE_TIME_LIMIT:g}, or "
+            "\\[diagnose].time_limit; inf: none); what it leaves out is reported first"
+        ),
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress display")] = False,
     mass: MassOpt = None,
 ) -> None:
-    """Locate the mismatch, name the physics left out, model it, show the fit improve."""
+    """Locate the mismatch, name the physics left out, model it, show the fit improve.
+    Ctrl-C stops it within the fit in flight and writes what was judged (exit 3)."""
     from fricjax.api import config_or_default, diagnose_recording, enable_compilation_cache
     from fricjax.report.tables import fmt
 
@@ -550,23 +565,27 @@ def diagnose(
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead
     enable_compilation_cache()
+    stop = threading.Event()
     with _stage_progress(quiet) as on_stage:
-        diag, paths = diagnose_recording(
-            recording,
-            config,
-            out=out,
-            validation=validation,
-            mass=mass,
-            overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
-            on_stage=on_stage,
+        diag, paths = _stoppable(
+            lambda: diagnose_recording(
+                recording,
+                config,
+                out=out,
+                validation=validation,
+                mass=mass,
+                overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
+                on_stage=on_stage,
+                stop=stop,
+            ),
+            stop,
         )
-    untested = diag.clock.not_tested()
+    headline = diag.clock.headline()
+    if headline:
+        typer.echo(headline)  # before any verdict: the limit and what it left untested
     if not diag.findings and diag.clock.skipped:
-        # cut short by the time limit: never "nothing is missing"
-        typer.echo(
-            f"nothing found among the candidates tested; {len(untested)} not tested "
-            "(time limit hit)"
-        )
+        # cut short: never "nothing is missing"
+        typer.echo("nothing found among the candidates tested")
     elif not diag.findings:
         typer.echo("no missing physics found (residual consistent with noise)")
     for f in diag.findings:
@@ -577,10 +596,56 @@ def diagnose(
         f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; output error "
         f"{fmt(before['output_error_cost'], 6)} -> {fmt(after['output_error_cost'], 6)} sigma_x^2"
     )
-    for item in diag.clock.summary()["skipped"]:
-        typer.echo(f"time limit at {item['stage']}: {item['what']}")
     typer.echo(f"report: {paths['report']}")
     typer.echo(f"html: {paths['html']}")
+    if diag.clock.interrupted:
+        raise typer.Exit(EXIT["partial"])
+
+
+def _stoppable(work: Callable[[], Any], stop: threading.Event) -> Any:
+    """Run ``work`` in a worker thread; the first Ctrl-C sets ``stop`` (the work ends its
+    fit in flight and returns what it judged), a second one exits at once (status 130).
+
+    The main thread only waits, so it takes the signal at once even while a compiled
+    program runs in the worker (a program in the main thread would hold it off until it
+    returned)."""
+    result: list[Any] = []
+    error: list[BaseException] = []
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            result.append(work())
+        except BaseException as err:  # handed to the main thread as it is
+            error.append(err)
+        finally:
+            done.set()
+
+    # a process started in the background by a shell inherits SIGINT ignored: the user's
+    # `kill -INT` must still stop it
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    worker = threading.Thread(target=run, name="fricjax-diagnose", daemon=True)
+    worker.start()
+    # an Event, not Thread.join: a KeyboardInterrupt inside join can leave the thread
+    # looking finished while it still runs
+    while not done.is_set():
+        try:
+            done.wait(0.2)
+        except KeyboardInterrupt:
+            if stop.is_set():
+                typer.echo("\ninterrupted again: nothing more written", err=True)
+                sys.stderr.flush()
+                # the worker may be inside a compiled program: leave without joining it
+                os._exit(EXIT["interrupted"])
+            stop.set()
+            typer.echo(
+                "\nstopping: the fit in flight ends, then what was judged is written "
+                "(Ctrl-C again to quit without it)",
+                err=True,
+            )
+    if error:
+        raise error[0]
+    return result[0]
 
 
 def _diagnose_across(
@@ -645,6 +710,13 @@ def init_config_cmd(
         str | None, typer.Option(help="linear | rotary (default: the recording's attr)")
     ] = None,
     mass: MassOpt = None,
+    u_unit: Annotated[
+        str | None,
+        typer.Option(
+            help="Unit of /u (default: the recording's; a CSV has none); N (N*m rotary) "
+            "says u is a measured force, its gain fixed at 1"
+        ),
+    ] = None,
     force: Annotated[bool, typer.Option(help="Overwrite an existing --out")] = False,
 ) -> None:
     """Write a commented starting config with bounds from the recording's own scale."""
@@ -658,6 +730,7 @@ def init_config_cmd(
         harmonics=harmonics,
         mass=mass,
         axis=axis,
+        u_unit=u_unit,
         force=force,
     )
     typer.echo(f"wrote {path}; next: fricjax identify {recording} --config {path}")

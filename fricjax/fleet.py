@@ -341,7 +341,7 @@ def _searched(
 def _fit_shard(
     members: Sequence[Member], width: int, settings: IdentifySettings, number: int
 ) -> list[FleetFit]:
-    if settings.objective != "equation":
+    if settings.objective == "simulation":
         raise FricjaxError(
             "[search].objective: the fleet fits by equation error only "
             f"(got {settings.objective!r}; run `fricjax identify` per recording for it)"

@@ -55,7 +55,7 @@ import json
 import re
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import equinox as eqx
@@ -342,11 +342,13 @@ def identify_joint(
     optimum [N²]. ``on_member(k, K, name)`` is called before each own fit."""
     if len(problems) < 2:
         raise FricjaxError("joint fit: needs at least two recordings")
-    if settings.objective != "equation":
+    if settings.objective == "simulation":
         raise FricjaxError(
             "[search].objective: a joint fit minimises the equation error only; set "
             'objective = "equation" (or fit the recordings one at a time)'
         )
+    # the own fits only weight the joint one: equation error, as the joint fit
+    settings = replace(settings, objective="equation")
     start = time.perf_counter()
     own = []
     for k, problem in enumerate(problems):

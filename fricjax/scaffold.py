@@ -110,6 +110,7 @@ def scaffold_config(
     harmonics: int = 3,
     mass: float | None = None,
     axis: str | None = None,
+    u_unit: str | None = None,
 ) -> str:
     """TOML text of a commented starting config for ``recording`` (module docstring).
 
@@ -123,6 +124,9 @@ def scaffold_config(
         harmonics: number of harmonics of a harmonic drive (≥ 1).
         mass: moving mass [kg] (or moment of inertia [kg·m²]); overrides the recording's.
         axis: ``"linear"`` or ``"rotary"``; default: the recording's attr, else linear.
+        u_unit: unit of ``/u`` (default: the recording's ``u_unit``; a CSV has none). A
+            force unit of the axis (N, or N·m on a rotary axis) says ``u`` is a measured
+            force (a load cell): its gain is then fixed at 1 instead of searched.
 
     Raises:
         FricjaxError: unknown drive or friction term, no Coulomb term, no mass, a
@@ -131,6 +135,8 @@ def scaffold_config(
     rec = recording if isinstance(recording, Recording) else read_recording(recording, mass=mass)
     if mass is not None and isinstance(recording, Recording):
         rec = dataclasses.replace(rec, mass=mass)
+    if u_unit is not None:
+        rec = dataclasses.replace(rec, u_unit=u_unit.strip())
     if drive not in DRIVES:
         raise FricjaxError(f"--drive: must be one of {', '.join(DRIVES)}, got {drive!r}")
     terms = [f.strip() for f in friction if f.strip()]
@@ -200,6 +206,12 @@ def _render(
                 f'gain = {{ unit = "{F}/{F}", value = 1.0 }}  # /F is the force on the body; '
                 "free it (e.g. 0.5..2) if the sensor's calibration is in doubt"
             )
+        elif is_force_unit(rec.u_unit, u):
+            params.append(
+                f'gain = {{ unit = "{F}/{F}", value = 1.0 }}  # /u is a force in {rec.u_unit} '
+                f"(a load cell); free it (e.g. 0.5..2) if its calibration is in doubt "
+                f"(least squares on the record: {_g(s.gain or 0.0)})"
+            )
         else:
             g = abs(s.gain or 0.0)
             hi = 10.0 * g if g > 0 else 1.0
@@ -232,6 +244,11 @@ def _render(
             param(f"Fp_{i}", F, 0.0, s.force, 0.5 * s.force, "[0, F_s]")
         for i in range(1, harmonics + 1):
             param(f"phi_{i}", "rad", -math.pi, math.pi, 0.0, "any phase")
+    if mass_from == "from --mass":
+        # the config carries the mass so that the printed next command needs no --mass
+        params.append(
+            f'mass = {{ unit = "{u.inertia}", value = {_g(float(rec.mass))} }}  # {mass_from}'
+        )
     level = f"[0, F_s], F_s = {_g(s.force)} {F}"
     viscous_hi = s.force / s.v_max
     viscous_why = f"[0, F_s/v_max], v_max = {_g(s.v_max)} {V}: viscous force at top speed <= F_s"
@@ -268,6 +285,11 @@ def _render(
     if drive == "measured":
         what = "measured force /F [N]" if s.signal == "F" else f"drive input /u [{rec.u_unit}]"
         head.append(f"# Drive: measured_input on the {what}, filtered like m·a.")
+        if s.signal == "u" and not rec.u_unit:
+            head.append(
+                f"# /u has no unit: if it is a force in {F} (a load cell), write the config "
+                f"again with --u-unit {F.replace('·', '*')} to fix its gain at 1."
+            )
     head.append("# Widen a bound that the identified value sits on; fix a parameter the record")
     head.append("# does not determine (identify's summary names them).")
     lines = [*head, "", "[model]", f"terms = {terms!r}".replace("'", '"')]
@@ -299,4 +321,25 @@ def _render(
         "separable = true",
         "",
     ]
+    nonlinear = (drive == "harmonic") + ("stribeck" in friction)
+    if nonlinear:
+        # the default schedule is sized for the seed's 26-D search; over one or two
+        # nonlinear parameters a short one finds the same minimum in a fraction of the time
+        lines += [
+            "[search.separable_budget]",
+            f"# {nonlinear} nonlinear parameter{'s' * (nonlinear > 1)}: a short schedule",
+            "chains = 8",
+            "steps_per_level = 4",
+            "alpha = 0.7",
+            "t_min_rel = 1e-3",
+            "patience = 3",
+            "",
+        ]
     return "\n".join(lines)
+
+
+def is_force_unit(unit: str, axis: AxisUnits) -> bool:
+    """Whether ``unit`` is the axis's force unit (``N``; ``N·m``, ``N*m`` or ``Nm`` on a
+    rotary axis)."""
+    spelled = unit.strip().replace("*", "·").replace(" ", "")
+    return bool(spelled) and spelled in (axis.force, axis.force.replace("·", ""))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 from pathlib import Path
@@ -163,7 +164,9 @@ def test_nan_in_a_csv_is_named(tmp_path: Path) -> None:
     assert "bad.csv" in out.stderr and "NaN" in out.stderr
 
 
-def test_diagnosis_progress_shows_each_stage_on_a_terminal_and_nothing_elsewhere() -> None:
+def test_diagnosis_progress_shows_each_stage_live_on_a_terminal_and_as_log_lines_elsewhere() -> (
+    None
+):
     import io
 
     from rich.console import Console
@@ -180,9 +183,15 @@ def test_diagnosis_progress_shows_each_stage_on_a_terminal_and_nothing_elsewhere
     from rich.text import Text
 
     assert "12.5 s done: base_fit" in Text.from_ansi(tty.file.getvalue()).plain
-    for console, quiet in ((tty, True), (Console(file=io.StringIO()), False)):
-        with _stage_progress(quiet, console) as on_stage:
-            assert on_stage is None
+    with _stage_progress(True, tty) as on_stage:
+        assert on_stage is None
+    # not a terminal (a log file): plain lines, no control characters
+    with _stage_progress(False, Console(file=io.StringIO())) as on_stage:
+        assert on_stage is not None
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        on_stage(StageEvent("candidates", "output-error fit of impact", 12.5))
+    assert err.getvalue() == "    12.5 s  candidates: output-error fit of impact\n"
 
 
 def test_a_time_limit_that_is_not_positive_is_refused() -> None:

@@ -17,7 +17,11 @@ from fricjax.problem import Problem, build_problem
 
 @pytest.fixture(scope="module")
 def paper_settings(paper_config: Config) -> IdentifySettings:
-    return IdentifySettings.from_tables(paper_config.tables, source=paper_config.source)
+    # the seed's procedure (equation error, search and polish): the output-error refinement
+    # of the default "auto" objective is tested in tests/test_output_error.py
+    return IdentifySettings.from_tables(
+        paper_config.tables, source=paper_config.source, overrides={"objective": "equation"}
+    )
 
 
 @pytest.fixture(scope="module")

@@ -85,7 +85,7 @@ def test_noise_scale_estimates_white_noise_under_smooth_motion():
 
 def test_identify_settings_objective_and_output_error_table():
     default = IdentifySettings.from_tables({})
-    assert default.objective == "equation" and default.output_error == OutputErrorSettings()
+    assert default.objective == "auto" and default.output_error == OutputErrorSettings()
     tables = {"search": {"objective": "simulation"}, "output_error": {"segment_s": 0.25}}
     s = IdentifySettings.from_tables(tables, source="c.toml")
     assert s.objective == "simulation" and s.output_error.segment_s == 0.25
@@ -93,7 +93,9 @@ def test_identify_settings_objective_and_output_error_table():
     assert cli.objective == "simulation"
     with pytest.raises(FricjaxError, match=r"c.toml: \[search\].objective: must be one of"):
         IdentifySettings.from_tables({"search": {"objective": "output"}}, source="c.toml")
-    with pytest.raises(FricjaxError, match="--objective: must be one of equation, simulation"):
+    with pytest.raises(
+        FricjaxError, match="--objective: must be one of auto, equation, simulation"
+    ):
         IdentifySettings.from_tables({}, overrides={"objective": "output"})
     with pytest.raises(FricjaxError, match=r"c.toml: \[output_error\].hold"):
         IdentifySettings.from_tables({"output_error": {"hold": 1}}, source="c.toml")

@@ -308,6 +308,7 @@ def _fricjax_runs(
     """``identify`` with the config's settings, the search space forced (26-D or
     separable): (without LM, from the traces; with LM), and the warm-up time."""
     overrides: dict[str, Any] = {"separable": separable} if separable_available() else {}
+    overrides["objective"] = "equation"  # the seed's procedure, as its peers run it
 
     def settings(seed: int) -> IdentifySettings:
         return IdentifySettings.from_tables(

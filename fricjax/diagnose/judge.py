@@ -261,6 +261,7 @@ def converged(
     fit: OutputErrorFit | None = None,
     n_directions: int | None = None,
     more: Callable[[float], bool] | None = None,
+    rounds: list[tuple[float, int, float]] | None = None,
 ) -> OutputErrorFit:
     """An output-error fit (:func:`_fit`) from ``start`` (or continued from ``fit``),
     restarted from its end until a restart lowers its cost by less than :data:`CONVERGED`,
@@ -268,16 +269,21 @@ def converged(
     Gauss–Newton decrement), and a restart with a fresh trust region can still descend
     (0.272 s twin's base: stopped at 191.86 σ_x², two restarts reached 189.07).
     ``more(seconds)``: whether a round expected to take that long (the last one's wall
-    time) may still start (a time limit); None: always."""
+    time) may still start (a time limit); None: always. ``rounds``: each round's (cost
+    [σ_x²], LM steps, wall seconds) is appended to it (benchmarks)."""
     began = time.perf_counter()
     fit = fit or _fit(problem, start, settings, states, n_directions)
     last = time.perf_counter() - began
+    if rounds is not None:
+        rounds.append((fit.cost, fit.n_steps, last))
     for _ in range(MAX_ROUNDS - 1):
         if more is not None and not more(last):
             break
         began = time.perf_counter()
         again = _fit(problem, fit.params, settings, (fit.states_x, fit.states_v), n_directions)
         last = time.perf_counter() - began
+        if rounds is not None:
+            rounds.append((again.cost, again.n_steps, last))
         done = fit.cost - again.cost < CONVERGED
         fit = again if again.cost < fit.cost else fit
         if done:

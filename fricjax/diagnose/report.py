@@ -117,14 +117,17 @@ def residual_figure(diag: Diagnosis, path: Path) -> Path:
 
 
 def _verdict(diag: Diagnosis) -> str:
+    cut = diag.clock.headline()
+    verdict = _findings_verdict(diag)
+    return f"**{cut}** {verdict}" if cut else verdict
+
+
+def _findings_verdict(diag: Diagnosis) -> str:
     named = [f["effect"] for f in diag.findings if f["effect"] != "unexplained"]
     unexplained = sum(f["effect"] == "unexplained" for f in diag.findings)
     if not diag.findings and diag.clock.skipped:
         # a diagnosis cut short cannot say that nothing is missing
-        return (
-            "**Nothing found among the candidates tested**: the time limit cut this "
-            "diagnosis short (see Time)."
-        )
+        return "**Nothing found among the candidates tested** (see Time)."
     if not diag.findings:
         return (
             "**Nothing is missing**: no catalogue term passes the judge and the model fits the "
@@ -254,8 +257,9 @@ def timing_blocks(diag: Diagnosis) -> list[Block]:
         Table(("stage", "time [s]", "limit [s]"), rows),
     ]
     if t["skipped"]:
+        why = "Interrupted (Ctrl-C)" if t.get("interrupted") else "Time limit hit"
         blocks += [
-            Para("**Time limit hit**: this diagnosis is incomplete; left out:", "note"),
+            Para(f"**{why}**: this diagnosis is incomplete; left out:", "note"),
             Items(tuple(f"at {s['stage']} ({s['at_s']:.1f} s): {s['what']}" for s in t["skipped"])),
         ]
     return blocks

@@ -30,7 +30,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+import threading
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -55,7 +56,7 @@ from fricjax.diagnose.judge import (
     simulation_error,
     starts,
 )
-from fricjax.diagnose.stages import LIMITED, Clock, OnStage
+from fricjax.diagnose.stages import LIMITED, TIME_LIMIT_S, Clock, OnStage
 from fricjax.errors import FricjaxError, where
 from fricjax.identify import IdentifySettings, identify
 from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
@@ -126,12 +127,15 @@ class DiagnoseSettings:
     heldout: float = 0.3
     segment_s: float = 0.05
     max_steps: int = 100
-    time_limit: float = 180.0
+    time_limit: float = TIME_LIMIT_S
     stage_limits: dict[str, float] = field(default_factory=lambda: dict(STAGE_LIMITS))
 
-    def clock(self, on_stage: OnStage | None = None) -> Clock:
-        """A :class:`~fricjax.diagnose.stages.Clock` with these time limits."""
-        return Clock(limits=dict(self.stage_limits), total=self.time_limit, on_stage=on_stage)
+    def clock(self, on_stage: OnStage | None = None, stop: threading.Event | None = None) -> Clock:
+        """A :class:`~fricjax.diagnose.stages.Clock` with these time limits (``stop``: a
+        stop request, e.g. Ctrl-C)."""
+        return Clock(
+            limits=dict(self.stage_limits), total=self.time_limit, on_stage=on_stage, stop=stop
+        )
 
     def output_error(self, evidence: Evidence) -> OutputErrorSettings:
         """The output-error settings of every fit: residual in units of the record's σ̂_x."""
@@ -450,14 +454,18 @@ def diagnose(
     validation: Problem | None = None,
     recording: str = "",
     on_stage: OnStage | None = None,
+    stop: threading.Event | None = None,
 ) -> Diagnosis:
     """The whole diagnosis of ``problem``'s base model (module docstring). ``validation``: a
     second recording of the same plant, base model. ``on_stage``: called with each
-    :class:`~fricjax.diagnose.stages.StageEvent` (progress display)."""
+    :class:`~fricjax.diagnose.stages.StageEvent` (progress display). ``stop``: once set
+    (Ctrl-C, from another thread), the work in flight ends and the rest is left out, as at
+    a time limit; the diagnosis then reports what it judged, marked interrupted."""
     settings = settings or DiagnoseSettings()
-    clock = settings.clock(on_stage)
+    clock = settings.clock(on_stage, stop)
     problem = _undecimated(problem)
-    identify_settings = identify_settings or IdentifySettings()
+    # the judge fits the base by output error itself, from the equation-error estimate
+    identify_settings = replace(identify_settings or IdentifySettings(), objective="equation")
     with clock.stage("base_fit", "base fit: search and refine"):
         run = identify(problem, identify_settings)
         evidence = record_noise(problem)

@@ -8,12 +8,16 @@ answer is yes, records what it leaves out with :meth:`Clock.skip`. A limit acts 
 when hit: below every limit the diagnosis runs exactly as without a clock.
 
 A limit is checked between units of work (one candidate's output-error fits, one
-candidate's held-out checks), so a stage overruns its limit by at most one unit.
+candidate's held-out checks), so a stage overruns its limit by at most one unit. A stop
+request (``stop``, set by Ctrl-C in the command line) acts as a limit hit everywhere at
+once: the work in flight ends, the rest is recorded as left out, and what was judged is
+reported, marked interrupted.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -29,6 +33,10 @@ STAGES: dict[str, str] = {
 }
 # the stages whose work a limit can cut (the others are a single step the diagnosis needs)
 LIMITED = ("candidates", "heldout")
+#: Default seconds for a whole diagnosis (``DiagnoseSettings.time_limit``): the bound a
+#: user waits for on any recording up to 30 s. Here, beside the clock, so that the
+#: command line can show it without importing the diagnosis.
+TIME_LIMIT_S = 180.0
 
 
 @dataclass(frozen=True)
@@ -61,12 +69,14 @@ class Clock:
 
     ``limits``: seconds per stage (keys of :data:`LIMITED`; a missing key is no limit);
     ``total``: seconds for the whole diagnosis (``inf``: none); ``on_stage``: called with
-    every :class:`StageEvent`; ``now``: the clock [s] (a test may drive it)."""
+    every :class:`StageEvent`; ``now``: the clock [s] (a test may drive it); ``stop``: set
+    from another thread to stop the diagnosis as if every limit were hit."""
 
     limits: Mapping[str, float] = field(default_factory=dict)
     total: float = math.inf
     on_stage: OnStage | None = None
     now: Callable[[], float] = time.perf_counter
+    stop: threading.Event | None = None
     spent: dict[str, float] = field(default_factory=dict)
     skipped: list[Skipped] = field(default_factory=list)
     _open: list[str] = field(default_factory=list)
@@ -116,12 +126,20 @@ class Clock:
         """Which limit stops more work at stage ``name``: ``"total"``, the stage's own
         (``name``), or ``""`` (none hit). ``need`` [s]: the expected length of the unit of
         work about to start; a unit that would end past a limit is not started, so a limit
-        is overrun by at most the error of that expectation, not by a whole unit."""
+        is overrun by at most the error of that expectation, not by a whole unit.
+        ``"interrupted"`` once :attr:`stop` is set."""
+        if self.interrupted:
+            return "interrupted"
         if self.elapsed() + need > self.total:
             return "total"
         if self.used(name) + need > self.limits.get(name, math.inf):
             return name
         return ""
+
+    @property
+    def interrupted(self) -> bool:
+        """Whether a stop was requested (Ctrl-C)."""
+        return self.stop is not None and self.stop.is_set()
 
     def over(self, name: str, need: float = 0.0) -> bool:
         """Whether a limit stops more work at stage ``name`` (``need``: as in :meth:`hit`)."""
@@ -132,11 +150,30 @@ class Clock:
         candidate it leaves untested; ``need``: as in :meth:`hit`)."""
         item = Skipped(name, what, self.elapsed(), self.hit(name, need) or "total", effect)
         self.skipped.append(item)
-        self.note(f"time limit: {what}")
+        self.note(f"{'stopped' if item.limit == 'interrupted' else 'time limit'}: {what}")
 
     def untested(self, name: str, effect: str, need: float = 0.0) -> None:
         """Record candidate ``effect`` as not tested at stage ``name`` (time limit)."""
-        self.skip(name, f"{effect}: not tested (time limit)", effect, need)
+        why = "stopped" if self.interrupted else "time limit"
+        self.skip(name, f"{effect}: not tested ({why})", effect, need)
+
+    def headline(self) -> str:
+        """One sentence for the first lines of a verdict when work was left out (a limit
+        hit, or Ctrl-C), naming the limit and the candidates left untested; "" when none."""
+        if not self.skipped:
+            return ""
+        left = self.not_tested()
+        untested = (
+            f"{len(left)} candidate(s) not tested: {', '.join(left)}"
+            if left
+            else "some checks were not run"
+        )
+        if self.interrupted:
+            return f"Interrupted (Ctrl-C) at {self.skipped[0].at_s:.0f} s: incomplete, {untested}."
+        return (
+            f"Time limit ({self.total:g} s in all) hit at {self.skipped[0].at_s:.0f} s: "
+            f"incomplete, {untested}; a longer --time-limit tests them."
+        )
 
     def not_tested(self) -> list[str]:
         """The candidates a limit left untested, each once, in the order they were met."""
@@ -147,6 +184,7 @@ class Clock:
         :data:`STAGES` order), the limits, and what was skipped."""
         self._charge()
         return {
+            "interrupted": self.interrupted,
             "total_s": self.elapsed(),
             "stages_s": {k: self.spent[k] for k in STAGES if k in self.spent},
             "limits_s": {"total": self.total, **dict(self.limits)},

@@ -10,11 +10,12 @@ import numpy as np
 
 from fricjax.config import parse_config
 from fricjax.errors import FricjaxError, where
+from fricjax.identify import MISFIT_LIMIT
 from fricjax.io.results import ResultsFile, RunResult, read_results
 from fricjax.joint import is_joint, members_of, split_name
 from fricjax.model.system import MASS
 from fricjax.params import check_value
-from fricjax.report.tables import SEED_GROUPS, fmt, format_table, seed_tables
+from fricjax.report.tables import SEED_GROUPS, fmt, format_fields, format_table, seed_tables
 from fricjax.units import AxisUnits, axis_units
 
 
@@ -98,8 +99,41 @@ def correlated_pairs(run: RunResult) -> list[tuple[str, str, float]]:
     return sorted(pairs, key=lambda p: -abs(p[2]))
 
 
+def misfit(run: RunResult) -> str:
+    """Plain words when the fitted model does not explain the record within its noise (cost
+    over the noise-only cost above :data:`fricjax.identify.MISFIT_LIMIT`); "" when it does
+    or when the run carries no noise model."""
+    a = run.attrs
+    u = run_units(run)
+    if str(a.get("objective", "")).startswith("output error"):
+        ratio = float(run.ems)  # E_OE per residual entry, in σ_x²
+        rms, sigma = float(a.get("position_rms", np.nan)), float(a.get("x_scale", np.nan))
+        if not ratio > MISFIT_LIMIT:
+            return ""
+        return (
+            f"The model does NOT fit this record: simulated, it misses the recorded position "
+            f"by {fmt(rms, 3)} {u.position} rms, {rms / sigma:.3g} times the noise "
+            f"(σ_x = {fmt(sigma, 3)} {u.position}). The values are the best this model can do, "
+            "not the plant's: σ says how well the record pins them under this model, not how "
+            "far they are from the truth. Find what the model leaves out with `fricjax "
+            "diagnose`."
+        )
+    phi = float(a.get("dispersion", np.nan))
+    if not phi > MISFIT_LIMIT:
+        return ""
+    return (
+        f"The model does NOT fit this record by equation error: its residual is {phi:.3g} "
+        "times the cost of the record's noise alone. An equation-error estimate is then "
+        "biased (where the body sticks and slips, or where the model lacks physics): these "
+        "values are not measured. Refine them by simulation (`--objective simulation`, which "
+        "the default `auto` runs by itself) and find what is missing with `fricjax diagnose`."
+    )
+
+
 def determination(run: RunResult) -> str:
-    """Plain words: which parameters the record does not determine, and what would fix it."""
+    """Plain words: whether the model fits the record (:func:`misfit`), which parameters the
+    record does not determine, and what would fix it."""
+    wrong = misfit(run)
     loose = undetermined(run)
     pairs = correlated_pairs(run)
     record, subject = (
@@ -107,11 +141,30 @@ def determination(run: RunResult) -> str:
         if is_joint(run)
         else ("this record", "This record does")
     )
+    if wrong:
+        return "\n".join([wrong, *_determination(run, loose, pairs, record, subject, fits=False)])
+    return "\n".join(_determination(run, loose, pairs, record, subject, fits=True))
+
+
+def _determination(
+    run: RunResult,
+    loose: dict[str, str],
+    pairs: list[tuple[str, str, float]],
+    record: str,
+    subject: str,
+    *,
+    fits: bool,
+) -> list[str]:
+    if not loose and not pairs and not fits:
+        return [
+            f"Under this model, {record} pins every parameter (±2σ within "
+            f"±{200 * LOOSE_SIGMA:.0f} % of its value, none on a bound)."
+        ]
     if not loose and not pairs:
-        return (
+        return [
             f"Every parameter is determined by {record} (±2σ within ±{200 * LOOSE_SIGMA:.0f} %"
             " of its value, none on a bound)."
-        )
+        ]
     lines = []
     if loose:
         lines.append(
@@ -153,7 +206,7 @@ def determination(run: RunResult) -> str:
             "mass in g? force in kN?) or write bounds from the recording with "
             "`fricjax init-config`."
         )
-    return "\n".join(lines)
+    return lines
 
 
 def _cost_rows(run: RunResult) -> list[tuple[str, str]]:
@@ -207,7 +260,7 @@ def _cost_unit(run: RunResult) -> str:
 def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
     """What ``identify`` prints at the end: fit figures, parameters, flags, minima census."""
     a = run.attrs
-    head = format_table(
+    head = format_fields(
         [
             ("method", run.method),
             ("search", str(a.get("search_space", "full"))),
@@ -216,6 +269,11 @@ def run_summary(run: RunResult, *, recording: str | Path | None = None) -> str:
                 f"{a.get('n_chains')} x {a.get('levels')} ({a.get('n_evals')} cost evaluations)",
             ),
             *_cost_rows(run),
+            *(
+                [("refined by output error", str(a["refined_by_output_error"]))]
+                if "refined_by_output_error" in a
+                else []
+            ),
             *_sigma_rows(a),
             ("wall time [s]", f"{a.get('wall_time', float('nan')):.2f}"),
             ("interrupted", str(a.get("interrupted", False))),

@@ -103,6 +103,13 @@ def format_table(rows: Sequence[Sequence[str]], header: Sequence[str] | None = N
     return "\n".join(lines)
 
 
+def format_fields(rows: Sequence[tuple[str, str]]) -> str:
+    """``name  value`` lines, both left-aligned: a summary whose values are sentences of any
+    length stays as wide as its longest line, not as its longest value right-aligned."""
+    width = max((len(k) for k, _ in rows), default=0)
+    return "\n".join(f"{k.ljust(width)}  {v}".rstrip() for k, v in rows)
+
+
 def seed_tables(
     columns: Mapping[str, Mapping[str, float]],
     *,

@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -128,3 +132,46 @@ def test_a_tiny_budget_on_the_twin_lists_every_candidate_it_left_untested(
     assert {e.stage for e in events} >= {"base_fit", "candidates", "report"}
     report = paths["report"].read_text()
     assert "**Time limit hit**" in report
+
+
+def test_a_stop_request_acts_as_every_limit_hit_and_says_so_first() -> None:
+    now = Ticks()
+    stop = threading.Event()
+    clock = Clock(total=math.inf, now=now, stop=stop)
+    with clock.stage("candidates"):
+        assert not clock.over("candidates", need=1e9)  # no limit: anything may start
+        stop.set()
+        assert clock.hit("candidates") == "interrupted" and clock.hit("heldout")
+        clock.untested("candidates", "impact")
+    assert clock.not_tested() == ["impact"] and "stopped" in clock.skipped[0].what
+    line = clock.headline()
+    assert line.startswith("Interrupted (Ctrl-C)") and "impact" in line
+    assert clock.summary()["interrupted"] is True
+    # a time limit's headline names the limit instead
+    timed = Clock(total=5.0, now=now)
+    with timed.stage("candidates"):
+        now.t += 6.0
+        timed.untested("candidates", "stribeck")
+    assert timed.headline().startswith("Time limit (5 s in all)") and "stribeck" in timed.headline()
+    assert Clock(now=now).headline() == ""
+
+
+def test_ctrl_c_stops_the_work_in_flight_and_keeps_what_it_returns() -> None:
+    from fricjax.cli import _stoppable
+
+    stop = threading.Event()
+
+    def work() -> str:
+        # stands for a diagnosis: it checks the stop between units of work
+        for _ in range(600):
+            if stop.wait(0.05):
+                return "what was judged"
+        return "ran to the end"
+
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    began = time.perf_counter()
+    assert _stoppable(work, stop) == "what was judged"
+    assert stop.is_set() and time.perf_counter() - began < 5.0
+    # the command line's handler is back to Python's: a later Ctrl-C is a KeyboardInterrupt
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
