@@ -40,6 +40,7 @@ path).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -106,11 +107,21 @@ class Outcome:
         return min(self.cost, self.ref_end[0], self.ref_start[0])
 
 
+@functools.cache
+def _jitted():
+    import jax
+
+    return jax.jit(lambda res, theta_aug: res.value(theta_aug))
+
+
+def _value(res, theta_aug):
+    return _jitted()(res, theta_aug)
+
+
 def reference(problem, fit, start: dict[str, float], states, oe, nfev: int):
     """scipy least_squares (TRF, Jacobian scaling) on ``problem``'s output-error residual
     with the fit's free components, from ``fit``'s end and from ``start``: two (cost
     [σ_x²], evaluations, seconds)."""
-    import jax
     from scipy.optimize import least_squares
 
     from fricjax.diagnose.judge import moving
@@ -126,15 +137,14 @@ def reference(problem, fit, start: dict[str, float], states, oe, nfev: int):
         keep[:P] = [p.free and movable.get(p.name, False) for p in spec.params]
         idx = np.flatnonzero(keep)
         base = setup.x0.copy()
-        value = jax.jit(setup.residual.value)
 
         def full(z: np.ndarray, base=base, idx=idx) -> np.ndarray:
             th = base.copy()
             th[idx] = z
             return th
 
-        def fun(z: np.ndarray, value=value, full=full) -> np.ndarray:
-            return np.asarray(value(full(z)))
+        def fun(z: np.ndarray, res=setup.residual, full=full) -> np.ndarray:
+            return np.asarray(_value(res, full(z)))
 
         def jac(z: np.ndarray, res=setup.residual, full=full, idx=idx) -> np.ndarray:
             return np.asarray(jacobian_at(res, full(z))[1])[:, idx]

@@ -155,6 +155,7 @@ __all__ = [
     "jacobian_at",
     "noise_scale",
     "output_error_residual",
+    "sample_residual",
     "segmentation",
 ]
 
@@ -340,7 +341,12 @@ class OutputError(eqx.Module):
     differentiates, orthonormal rows or zero rows (padding); a fit passes unit vectors of
     the parameters it moves. They are a traced leaf: only K is static, so one program
     serves every choice of K directions. Default (:func:`output_error_residual`): the
-    identity, every parameter."""
+    identity, every parameter.
+
+    ``keep`` [n]: 1 where a sample's misfit counts, 0 where it is held out (a fold of the
+    cross-validation, :mod:`fricjax.diagnose.heldout`): a held-out sample's residual row is
+    zero, while the segments still run through it, tied to their neighbours by the
+    continuity defects, so what the fit predicts there comes from the data around it."""
 
     model: Model = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
@@ -353,6 +359,7 @@ class OutputError(eqx.Module):
     v_to_x: Float[Array, ""]
     weight: Float[Array, ""]  # w·√L
     directions: Float[Array, "K P"]
+    keep: Float[Array, " n"]  # 1: the sample is fitted; 0: held out (cross-validation)
     substeps: int = eqx.field(static=True)
     hold: str = eqx.field(static=True)
 
@@ -396,7 +403,7 @@ class OutputError(eqx.Module):
         """``r_aug`` [n + 2(S − 1)] by plain autodiff-able code (the reference for
         :meth:`value_and_jacobian`)."""
         x_sim, dx, dv = self.parts(theta_aug)
-        r = (x_sim - self.x) / self.x_scale
+        r = (x_sim - self.x) / self.x_scale * self.keep
         c = self.weight / self.x_scale * jnp.concatenate([dx, dv * self.v_to_x])
         return jnp.concatenate([r, c])
 
@@ -437,7 +444,7 @@ class OutputError(eqx.Module):
         xs, vs = xs[0], vs[0]
         scale = 1.0 / self.x_scale
         # sample rows: θ columns, then the own segment's ξ and ν columns
-        a = tx[:, self.seg, self.pos] * scale  # [K + 2, n]
+        a = tx[:, self.seg, self.pos] * (scale * self.keep)  # [K + 2, n]
         own = jax.nn.one_hot(self.seg, S, dtype=theta.dtype)  # [n, S]
         j_samples = jnp.concatenate(
             [a[:K].T @ dirs, own * a[K][:, None], own * a[K + 1][:, None]], 1
@@ -458,7 +465,7 @@ class OutputError(eqx.Module):
                 defect_rows(tv[:, :-1, -1], 1, w * self.v_to_x),
             ]
         )
-        r = (xs[self.seg, self.pos] - self.x) * scale
+        r = (xs[self.seg, self.pos] - self.x) * (scale * self.keep)
         c = w * jnp.concatenate([xs[:-1, -1] - xi[1:], (vs[:-1, -1] - nu[1:]) * self.v_to_x])
         return jnp.concatenate([r, c]), jac
 
@@ -487,6 +494,20 @@ def jacobian_at(
     per process and its jaxpr reused: inside the fit's program, and where a call on arrays
     (the candidates' screening) exports it to the program store (:mod:`fricjax.programs`)."""
     return _value_and_jacobian(residual, theta_aug)
+
+
+@stored
+def _value_at(residual: OutputError, theta_aug: Float[Array, " D"]) -> Float[Array, " m"]:
+    return residual.value(theta_aug)
+
+
+def sample_residual(
+    problem: Problem, fit: OutputErrorFit, settings: OutputErrorSettings
+) -> Float[np.ndarray, " n"]:
+    """``(x_sim − x)/σ_x`` [n] at every sample of ``fit``'s end point (its parameters and
+    segment states), the samples it held out included: what the fit predicts there."""
+    setup = output_error_residual(problem, fit.params, settings, (fit.states_x, fit.states_v))
+    return np.asarray(_value_at(setup.residual, jnp.asarray(setup.x0)))[: problem.n]
 
 
 @jax.custom_jvp
@@ -577,6 +598,7 @@ def output_error_residual(
         v_to_x=jnp.asarray(seg.duration, dtype=jnp.float64),
         weight=jnp.asarray(settings.defect_weight * math.sqrt(seg.L), dtype=jnp.float64),
         directions=jnp.eye(len(spec.names), dtype=jnp.float64),
+        keep=jnp.ones(n, dtype=jnp.float64),
         substeps=settings.substeps,
         hold=settings.hold,
     )
@@ -662,12 +684,14 @@ def _fit_rows(
     directions: Float[Array, "B K P"],
     lower: Float[Array, "B D"],
     upper: Float[Array, "B D"],
+    samples: Float[Array, "B n"],
     weights: Float[Array, " stages"],
     settings: RefineSettings,
     gain_tol: float,
 ) -> tuple[Refined, Float[Array, "B m"], Float[Array, "B m D"]]:
     """LM of every row (components outside ``free[b]`` pinned at ``x0s[b]``, the Jacobian
-    taken along ``directions[b]``, which span the row's free parameters), then r_aug and
+    taken along ``directions[b]``, which span the row's free parameters; the samples with
+    ``samples[b]`` = 0 held out, :attr:`OutputError.keep`), then r_aug and
     its Jacobian at each end point: one program, the rows vmapped (the batched
     ``while_loop`` runs until the last row stops; each row keeps its own end point, step
     count and convergence flag).
@@ -680,9 +704,9 @@ def _fit_rows(
     TRACES[(residual.model.name, *x0s.shape, residual.x.shape[0], directions.shape[1])] += 1
 
     def one(
-        x0: Array, keep: Array, dirs: Array, lo: Array, hi: Array
+        x0: Array, keep: Array, dirs: Array, lo: Array, hi: Array, fitted: Array
     ) -> tuple[Refined, Array, Array]:
-        res = eqx.tree_at(lambda m: m.directions, residual, dirs)
+        res = eqx.tree_at(lambda m: (m.directions, m.keep), residual, (dirs, fitted))
 
         def held(theta_aug: Array) -> Array:
             return jnp.where(keep, theta_aug, x0)
@@ -719,9 +743,9 @@ def _fit_rows(
 
     if x0s.shape[0] == 1:
         # vmap would turn the LM's branches into selects that evaluate both sides
-        out, r, jac = one(x0s[0], free[0], directions[0], lower[0], upper[0])
+        out, r, jac = one(x0s[0], free[0], directions[0], lower[0], upper[0], samples[0])
         return jax.tree.map(lambda a: a[None], (out, r, jac))
-    return jax.vmap(one)(x0s, free, directions, lower, upper)
+    return jax.vmap(one)(x0s, free, directions, lower, upper, samples)
 
 
 # compile time is most of a cold fit's time, and the classic emitter saves a fifth of it
@@ -735,6 +759,7 @@ def fit_output_error_batch(
     settings: OutputErrorSettings | None = None,
     states: tuple[np.ndarray, np.ndarray] | None = None,
     n_directions: int | None = None,
+    samples: Float[np.ndarray, " n"] | None = None,
 ) -> list[OutputErrorFit]:
     """B output-error fits of ONE model as one compiled program (:func:`fit_output_error`
     row by row): row ``b`` starts from ``starts[b]`` (the spec's free parameters, in
@@ -762,6 +787,11 @@ def fit_output_error_batch(
         n_directions: K, at least the largest count of fitted parameters over the rows
             (the default) and at most P; a caller that fits several models of one superset
             passes one K (e.g. the largest model's count) so that they share one program.
+        samples: [n] or [B, n]: 1 where a sample's misfit counts, 0 where it is held out
+            (:attr:`OutputError.keep`; a row each, e.g. the folds of a cross-validation);
+            default: every sample. Traced: the same program. The returned ``x_sim`` and
+            ``position_rms`` then hold on the fitted samples only (the held-out ones read as
+            the record).
 
     Returns:
         B :class:`OutputErrorFit`, in row order.
@@ -784,6 +814,14 @@ def fit_output_error_batch(
     if not np.all(np.isfinite(x0)):
         raise FricjaxError(f"{where(src, 'starts')}: not all finite")
     setup = output_error_residual(problem, {}, settings, None)
+    held = np.ones((B, problem.n)) if samples is None else np.asarray(samples, np.float64)
+    if held.ndim == 1:
+        held = np.broadcast_to(held, (B, held.shape[0]))
+    if held.shape != (B, problem.n):
+        raise FricjaxError(
+            f"{where(src, 'samples')}: shape {held.shape}, expected ({problem.n},) or "
+            f"({B}, {problem.n})"
+        )
     P, S = len(spec.names), setup.seg.S
     spec_free = setup.free[:P]
     x0s = np.repeat(setup.x0[None], B, axis=0)
@@ -816,6 +854,7 @@ def fit_output_error_batch(
         directions,
         lower,
         upper,
+        held,
         weights,
         _checked(settings.refine_settings()),
         settings.gain_tol,

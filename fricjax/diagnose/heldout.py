@@ -3,20 +3,23 @@
 One interface, :class:`Check` (``judge(before, after, place) -> Verdict``), two checks, both
 in the judge's own metric (output error in units of the record's σ̂_x²):
 
-* :class:`Split`: base and base + term are refitted on a training part of the record and
-  simulated over the rest with their parameters fixed (only the segment states are fitted
-  there: a simulation, not a refit). The test part is the record's last ``fraction``, or its
-  first where only that one reaches the term's place (a bump, an impact: a part that never
-  goes there "judges" the base's extrapolation alone); where neither reaches it, the check
-  does not judge and says why.
+* :class:`CrossValidation`: blocked K-fold cross-validation of the record. The segments of
+  the multiple shooting are dealt to K folds in turn (segment s to fold s mod K), so the
+  folds interleave over the whole record; base and base + term are refitted K times, each
+  time with one fold's samples held out (their residual rows weigh nothing, while the
+  segments still run through them, tied to their neighbours by the continuity defects), and
+  the held-out samples' misfit of those fits is summed over the folds. Every part of the
+  record is thus predicted by a fit that saw its neighbourhood and not itself, a short
+  record is judged on all of its data, and a term acting in one place (a bump, an impact)
+  is judged where it acts. A split of the record into a first and a last part instead asks
+  a term fitted on one part to extrapolate to a part the motion reaches differently, and
+  refused glaring true terms for that reason.
 * :class:`SecondRecording`: both models at their whole-record parameters simulated over a
-  second recording of the same plant (segment states fitted there only). Nothing of the
-  record is set aside, so it judges terms acting anywhere; but a second recording of the same
-  motion confirms any term that reproduces the plant there, right name or not, so with one
-  both checks run and a term must gain in every check that judges it.
+  second recording of the same plant (segment states fitted there only). A second
+  recording of the same motion confirms any term that reproduces the plant there, right
+  name or not, so with one both checks run and a term must gain in every check.
 
-The gain is ``1 − E_term,test / E_base,test``. Whether a record is too short to split is
-decided here alone (:func:`too_short`).
+The gain is ``1 − E_term,held out / E_base,held out``.
 """
 
 from __future__ import annotations
@@ -31,16 +34,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.diagnose.judge import Fitted, converged
+from fricjax.diagnose.judge import Fitted, converged_rows, fit_rows, moving
 from fricjax.output_error import (
     OutputError,
     OutputErrorSettings,
     output_error_residual,
+    sample_residual,
 )
 from fricjax.problem import Problem
 from fricjax.refine import refine
 
-__all__ = ["Check", "SecondRecording", "Split", "Verdict", "record_part", "too_short"]
+__all__ = ["FOLDS", "Check", "CrossValidation", "SecondRecording", "Verdict", "folds"]
 
 
 @dataclass(frozen=True)
@@ -111,91 +115,71 @@ def fixed_cost(
     return float(out.cost_after)
 
 
-def record_part(problem: Problem, start: int, stop: int) -> Problem:
-    """Samples ``start … stop − 1`` of the preprocessed record, remembering where they lie
-    in it (:attr:`Problem.window`)."""
-    sl = slice(start, stop)
-    offset, n_parent = problem.window or (0, problem.n)
-    return replace(
-        problem,
-        t=problem.t[sl],
-        x=problem.x[sl],
-        v=problem.v[sl],
-        a=problem.a[sl],
-        u=problem.u[sl],
-        window=(offset + start, n_parent),
-        rest=None,
-    )
+#: Folds of the cross-validation. Five is the usual choice (Hastie, Tibshirani & Friedman,
+#: ch. 7.10): each fit sees four fifths of the record, enough to refit every parameter it had
+#: on the whole, and the held-out fifth, spread over the record, is a fifth of every kind of
+#: motion. A record of fewer segments than folds holds out one segment at a time.
+FOLDS = 5
 
 
-def untested_place(location: Mapping[str, Any], test: Problem) -> str:
-    """Why ``test`` cannot judge a term acting only at ``location`` (its ``position_m`` or
-    ``time_s`` interval lies outside what ``test`` covers), or ``""``."""
-    for key, signal, unit in (("position_m", test.x, "m"), ("time_s", test.t, "s")):
-        if key not in location:
-            continue
-        lo, hi = (float(b) for b in location[key])
-        s_lo, s_hi = float(np.min(signal)), float(np.max(signal))
-        if hi < s_lo or lo > s_hi:
-            name = "x" if key == "position_m" else "t"
-            return (
-                f"the held-out part ({name} {s_lo:.4g} to {s_hi:.4g} {unit}) never reaches "
-                f"where this term acts ({name} {lo:.4g} to {hi:.4g} {unit})"
-            )
-    return ""
-
-
-def too_short(train: Problem, n_free: int, settings: OutputErrorSettings) -> str:
-    """Why ``train`` is too short to fit a model of ``n_free`` parameters by output error,
-    or ``""``: its samples must exceed the unknowns (parameters and two states per segment)
-    at least twice, so that the fit has as many residual degrees of freedom as unknowns and
-    its test-part prediction is not dominated by estimation variance (variance inflation
-    ``h/(1 − h)`` ≤ 1 at ``h`` = unknowns/samples ≤ ½)."""
-    dt = float(train.t[1] - train.t[0])
-    segments = max(1, round((train.n - 1) * dt / settings.segment_s))
-    unknowns = n_free + 2 * segments
-    if train.n < 2 * unknowns:
-        return (
-            f"the training part ({train.n} samples) is too short for {unknowns} unknowns "
-            f"({n_free} parameters, {segments} segments' states)"
-        )
-    return ""
+def folds(n: int, segment_samples: int, segments: int, k: int) -> list[np.ndarray]:
+    """K held-out masks [n] over ``n`` samples cut into ``segments`` segments of
+    ``segment_samples``: segment s in fold s mod K (module docstring); each sample is held
+    out by exactly one fold."""
+    seg = np.minimum(np.arange(n) // segment_samples, segments - 1)
+    return [(seg % k) == j for j in range(k)]
 
 
 @dataclass(frozen=True)
-class Split:
-    """The record's own split (module docstring): the test part is ``fraction`` of it."""
+class CrossValidation:
+    """Blocked K-fold cross-validation of the record (module docstring)."""
 
-    fraction: float
     settings: OutputErrorSettings
+    folds: int = FOLDS
 
     def judge(self, before: Fitted, after: Fitted, place: Mapping[str, Any]) -> Verdict:
-        n = before.problem.n
-        n_test = round(n * self.fraction)
-        cuts = {"last": (0, n - n_test, n - n_test, n), "first": (n_test, n, 0, n_test)}
-        why: dict[str, str] = {}
-        for part, (a, b, c, d) in cuts.items():
-            on = f"{part} {self.fraction:.0%} of the record"
-            why[part] = untested_place(place, record_part(before.problem, c, d))
-            if why[part]:
-                continue
-            short = too_short(record_part(after.problem, a, b), after.n_free, self.settings)
-            if short:
-                return Verdict("split", on, False, why=short)
-            costs = []
-            for m in (before, after):
-                train = record_part(m.problem, a, b)
-                fit = converged(
-                    train,
-                    m.fit.params,
-                    self.settings,
-                    n_directions=m.superset.n_directions(before.active),
+        sup = before.superset
+        f = before.fit
+        n, S = sup.record.n, f.n_segments
+        K = min(self.folds, S)
+        on = f"{K} interleaved folds of the record's {S} segments"
+        if K < 2:
+            return Verdict("cross-validation", on, False, why="the record is one segment long")
+        held = folds(n, f.segment_samples, S, K)
+        samples = [(~h).astype(np.float64) for h in held]
+        k = sup.n_directions(before.active)
+        costs = []
+        for m in (before, after):
+            free = moving(m.problem.spec)
+            fits = converged_rows(
+                sup.problem,
+                _first_round(m, free, samples, self.settings, k),
+                [free] * K,
+                self.settings,
+                k,
+                samples,
+            )
+            costs.append(
+                sum(
+                    float(np.sum(sample_residual(sup.problem, fit, self.settings)[h] ** 2))
+                    for fit, h in zip(fits, held, strict=True)
                 )
-                costs.append(fixed_cost(record_part(m.problem, c, d), fit.params, self.settings))
-            return Verdict("split", on, True, 1 - costs[1] / costs[0], costs[0], costs[1])
-        return Verdict(
-            "split", "the record's split", False, why="; ".join(dict.fromkeys(why.values()))
-        )
+            )
+        return Verdict("cross-validation", on, True, 1 - costs[1] / costs[0], *costs)
+
+
+def _first_round(
+    m: Fitted,
+    free: np.ndarray,
+    samples: list[np.ndarray],
+    settings: OutputErrorSettings,
+    k: int,
+) -> list[Any]:
+    """The K fold fits' first round, all from ``m``'s optimum, as one batch."""
+    spec = m.superset.problem.spec
+    rows = [spec.flatten(m.fit.params)] * len(samples)
+    states = [(m.fit.states_x, m.fit.states_v)] * len(samples)
+    return fit_rows(m.superset.problem, rows, [free] * len(samples), settings, states, k, samples)
 
 
 @dataclass(frozen=True)

@@ -26,11 +26,23 @@ catalogue's grid: the best local maxima of a cheap ranking, the equation-error s
 candidate's force columns against the base's equation-error residual (projected off the
 base's own columns; samples near rest left out, where the sign of the filtered velocity is
 noise). The grids are spaced so that no peak lies between two points (catalogue), and LM
-started within a grid cell of a peak converges to it, so the best point is enough when the
-ranking is right; the second local maximum guards against a ranking bent by the
-equation error's preprocessing bias. Both are scored in output error (:func:`screen`, Rao's
-score test at the current fit), which decides which candidates are refitted and from which
-start.
+started within a grid cell of a peak converges to it; the second local maximum guards
+against a ranking bent by the equation error's preprocessing bias. Every start of every
+candidate is refitted (:func:`fit_candidates`): a local test at the base (a score test)
+sees nothing of a term the base absorbs by bending its own parameters, which then pays
+when refitted.
+
+Calibration. The LR of a term whose shape was searched is the largest of many LRs, one per
+shape the record can tell apart, and the maximum over a scan is not F-distributed (Davies
+1987; the look-elsewhere effect). Each candidate's p is therefore that of the best of its
+``looks`` shapes (:func:`looks`, the points of its grid), by the union bound:
+``p = min(1, looks·p_raw)``. Valid whatever the dependence between shapes, and
+conservative where neighbouring shapes are alike. A candidate without a shape has one look.
+
+Ambiguity. Two candidates that both pass may explain the record equally well (on a
+monotone stroke a bump in position and a harmonic in time bend x(t) alike): Vuong's test
+(:func:`vuong`) of the best against each other, on the residuals of the two fits, says
+whether the record prefers the best significantly.
 
 One model. Base and candidates are all the same :class:`Superset` model, the terms not
 under test pinned (and held by the fit's mask, :func:`moving`), so one compiled output-error
@@ -44,15 +56,15 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 from scipy import stats
 
-from fricjax.diagnose.catalogue import CATALOGUE, candidate
+from fricjax.diagnose.catalogue import CATALOGUE, candidate, grid_size
 from fricjax.diagnose.evidence import NearRest
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
@@ -60,8 +72,6 @@ from fricjax.output_error import (
     OutputErrorFit,
     OutputErrorSettings,
     fit_output_error_batch,
-    jacobian_at,
-    output_error_residual,
 )
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
@@ -70,14 +80,15 @@ from fricjax.programs import stored
 __all__ = [
     "CandidateFit",
     "Fitted",
-    "Score",
     "Superset",
+    "converged_rows",
     "fit_base",
     "fit_candidates",
+    "fit_rows",
     "lack_of_fit_p",
-    "score_statistic",
-    "screen",
+    "looks",
     "starts",
+    "vuong",
 ]
 
 
@@ -200,8 +211,9 @@ class CandidateFit:
         fitted: base + term at its best start.
         base: the base fit its LR is taken against (the lower of the two, docstring).
         k: the term's free parameters.
-        lr, p_value, delta_bic: the statistic (module docstring).
+        lr, p_raw, delta_bic: the statistic at the fitted shape (module docstring).
         params: the term's own parameters [SI].
+        looks: the shapes the search chose among (:func:`looks`).
     """
 
     effect: str
@@ -209,9 +221,16 @@ class CandidateFit:
     base: Fitted
     k: int
     lr: float
-    p_value: float
+    p_raw: float
     delta_bic: float
     params: dict[str, float]
+    looks: int = 1
+
+    @property
+    def p_value(self) -> float:
+        """``min(1, looks·p_raw)``: the p of the best of ``looks`` shapes (module
+        docstring, "Calibration")."""
+        return min(1.0, self.looks * self.p_raw)
 
     def passes(self, limit: float, min_delta_bic: float) -> bool:
         """Significant at ``limit`` (the per-candidate α) and ΔBIC above ``min_delta_bic``."""
@@ -321,6 +340,106 @@ def _judge_numbers(
     return lr, float(f_pvalue(lr, k, nu)), float(lr - k * math.log(n))
 
 
+def looks(effect: str, record: Problem) -> int:
+    """How many shapes of ``effect`` its search chooses among: the points of its grid of
+    nonlinear parameters (a place, a width, a frequency), 1 for a term without any. The
+    catalogue spaces a grid so that no peak lies between two points, so its points are the
+    shapes the record can tell apart (module docstring, "Calibration")."""
+    return grid_size(candidate(effect).grid(record))
+
+
+def _padded(n: int) -> int:
+    """Rows of a batch: the next power of two, so that a few compiled programs serve every
+    step and round (a padded row repeats the first)."""
+    return 1 << max(n - 1, 0).bit_length()
+
+
+def fit_rows(
+    problem: Problem,
+    rows: Sequence[np.ndarray],
+    free: Sequence[np.ndarray],
+    settings: OutputErrorSettings,
+    states: Sequence[tuple[np.ndarray, np.ndarray]],
+    k: int,
+    samples: Sequence[np.ndarray] | None = None,
+) -> list[OutputErrorFit]:
+    """The rows fitted as ONE program (:func:`fit_output_error_batch`), padded to
+    :func:`_padded` rows; the fits of the given rows, in order. ``samples``: each row's
+    held-out mask (1 fitted, 0 held out), default every sample."""
+    lanes = lanes_per_call()
+    if len(rows) > lanes:
+        out: list[OutputErrorFit] = []
+        for i in range(0, len(rows), lanes):
+            part = slice(i, i + lanes)
+            out += fit_rows(
+                problem,
+                rows[part],
+                free[part],
+                settings,
+                states[part],
+                k,
+                None if samples is None else samples[part],
+            )
+        return out
+    n, B = len(rows), _padded(len(rows))
+
+    def pad(xs: Sequence[Any]) -> list[Any]:
+        return [*xs, *[xs[0]] * (B - n)]
+
+    xs = np.stack([np.asarray(st[0]) for st in pad(states)])
+    vs = np.stack([np.asarray(st[1]) for st in pad(states)])
+    held = None if samples is None else np.stack(pad(samples))
+    fits = fit_output_error_batch(
+        problem, np.stack(pad(rows)), np.stack(pad(free)), settings, (xs, vs), k, held
+    )
+    return fits[:n]
+
+
+def lanes_per_call() -> int:
+    """Rows of one batched fit program. On an accelerator every row of a step in one call
+    (the lanes run side by side). On a CPU one row per call: a batched ``while_loop`` runs
+    every row until the slowest has stopped, and its lanes share the same cores, so a batch
+    costs its row count times the slowest row's steps where separate calls cost the sum of
+    each row's own (the same compiled program serves both: B is padded to a power of two)."""
+    return 1 if jax.default_backend() == "cpu" else 1 << 30
+
+
+def converged_rows(
+    problem: Problem,
+    fits: Sequence[OutputErrorFit],
+    free: Sequence[np.ndarray],
+    settings: OutputErrorSettings,
+    k: int,
+    samples: Sequence[np.ndarray] | None = None,
+) -> list[OutputErrorFit]:
+    """Each of ``fits`` restarted from its end, all in one batch per round, until a round
+    gains less than :data:`CONVERGED` (:func:`converged`, row by row; at most
+    :data:`MAX_ROUNDS` rounds in all)."""
+    spec = problem.spec
+    best = list(fits)
+    open_ = list(range(len(best)))
+    for _ in range(MAX_ROUNDS - 1):
+        if not open_:
+            break
+        again = fit_rows(
+            problem,
+            [spec.flatten(best[i].params) for i in open_],
+            [free[i] for i in open_],
+            settings,
+            [(best[i].states_x, best[i].states_v) for i in open_],
+            k,
+            None if samples is None else [samples[i] for i in open_],
+        )
+        still = []
+        for i, fit in zip(open_, again, strict=True):
+            if best[i].cost - fit.cost >= CONVERGED:
+                still.append(i)
+            if fit.cost < best[i].cost:
+                best[i] = fit
+        open_ = still
+    return best
+
+
 def fit_candidates(
     base: Fitted,
     candidates: Sequence[tuple[str, Sequence[Mapping[str, float]]]],
@@ -328,29 +447,77 @@ def fit_candidates(
     nu: int,
 ) -> list[CandidateFit]:
     """Every candidate ``(effect, starts)`` fitted by output error from ``base``'s optimum
-    (amplitudes at their null, nonlinear parameters at each start), the best start kept,
-    judged against ``base`` (module docstring). The one place where the candidates'
-    output-error fits run."""
+    (amplitudes at their null, nonlinear parameters at each start), judged against ``base``
+    (module docstring). The one place where the candidates' output-error fits run.
+
+    One program per round: every (candidate, start) is a row of one batch of the superset
+    model, its fitted parameters (the base's and the candidate's own) chosen by the row's
+    mask; the best start of each candidate is then restarted from its end, all candidates
+    in one batch again, until a round gains less than :data:`CONVERGED` (as
+    :func:`converged` does for one fit)."""
     sup, n = base.superset, base.superset.record.n
+    spec = sup.problem.spec
+    names = list(spec.free_names)
+    own = moving(base.problem.spec)
     states = (base.fit.states_x, base.fit.states_v)
     k_step = sup.n_directions(base.active)
-    out = []
+    rows, masks, owner = [], [], []
+    mask_of: dict[str, np.ndarray] = {}
     for effect, nl_starts in candidates:
-        active = (*base.active, effect)
-        pb = sup.model(active)
-        # every start gets one round; the best is then run to convergence
-        best: OutputErrorFit | None = None
+        mask = own | np.isin(names, sup.names[effect])
+        mask_of[effect] = mask
         for nl in nl_starts or ({},):
-            fit = _fit(pb, {**base.fit.params, **nl}, settings, states, k_step)
-            if best is None or fit.cost < best.cost:
-                best = fit
-        assert best is not None
-        fitted = Fitted(sup, active, converged(pb, {}, settings, fit=best, n_directions=k_step))
+            row = base.theta.copy()
+            for q, value in nl.items():
+                row[names.index(q)] = value
+            rows.append(row)
+            masks.append(mask)
+            owner.append(effect)
+    if not rows:
+        return []
+    best: dict[str, OutputErrorFit] = {}
+    first = fit_rows(sup.problem, rows, masks, settings, [states] * len(rows), k_step)
+    for effect, fit in zip(owner, first, strict=True):
+        if effect not in best or fit.cost < best[effect].cost:
+            best[effect] = fit
+    ends = converged_rows(
+        sup.problem, list(best.values()), [mask_of[e] for e in best], settings, k_step
+    )
+    best = dict(zip(best, ends, strict=True))
+    out = []
+    for effect, fit in best.items():
+        active = (*base.active, effect)
+        fitted = Fitted(sup, active, fit)
         k = fitted.n_free - base.n_free
-        lr, p, dbic = _judge_numbers(base.cost, fitted.fit, k, n, nu)
-        own = {q: float(fitted.fit.params[q]) for q in sup.names[effect]}
-        out.append(CandidateFit(effect, fitted, base, k, lr, p, dbic, own))
+        lr, p, dbic = _judge_numbers(base.cost, fit, k, n, nu)
+        own_params = {q: float(fit.params[q]) for q in sup.names[effect]}
+        out.append(
+            CandidateFit(
+                effect, fitted, base, k, lr, p, dbic, own_params, looks(effect, sup.record)
+            )
+        )
     return out
+
+
+def vuong(best: Fitted, other: Fitted) -> tuple[float, int]:
+    """Vuong's test of two non-nested models on one record, in the judge's metric: with
+    ``d_i = r_other,i² − r_best,i²`` (output-error residuals in σ̂_x), summed per segment of
+    the multiple shooting (``D_s``, S segments: the residual of neighbouring samples is
+    correlated through the simulation, the segments much less), the statistic
+    ``t = mean(D)/(sd(D)/√S)`` follows Student's t with S − 1 degrees of freedom where the
+    two explain the record equally well. Returns (t, S − 1); t large: ``best`` is better."""
+    rec = best.superset.record
+    d = ((other.fit.x_sim - rec.x) ** 2 - (best.fit.x_sim - rec.x) ** 2) / best.fit.x_scale**2
+    seg = np.minimum(np.arange(rec.n) // best.fit.segment_samples, best.fit.n_segments - 1)
+    per = np.bincount(seg, weights=d)
+    S = per.shape[0]
+    sd = float(np.std(per, ddof=1)) if S > 1 else math.inf
+    t = (
+        float(np.mean(per) / (sd / math.sqrt(S)))
+        if sd > 0
+        else math.copysign(math.inf, float(np.sum(per)))
+    )
+    return t, max(S - 1, 1)
 
 
 def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> CandidateFit:
@@ -369,7 +536,7 @@ def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> Candida
         return cf
     base = Fitted(cf.base.superset, cf.base.active, fit)
     lr, p, dbic = _judge_numbers(base.cost, end, cf.k, base.superset.record.n, nu)
-    return replace(cf, base=base, lr=lr, p_value=p, delta_bic=dbic)
+    return replace(cf, base=base, lr=lr, p_raw=p, delta_bic=dbic)
 
 
 def lack_of_fit_p(fitted: Fitted, nu: int) -> float:
@@ -412,151 +579,7 @@ def record_gains(before: Fitted, after: Fitted) -> tuple[float, float]:
     return float(ems), float(sim)
 
 
-# -- the score screen ----------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Score:
-    """One candidate's score test at the current fit (:func:`screen`).
-
-    Attributes:
-        effect: catalogue name.
-        starts: its nonlinear parameters' start points, best score first (``[{}]`` for a
-            candidate without any).
-        score: the score statistic at the best start [σ_x²].
-        k: directions tested (the term's parameters outside its grid).
-        p_value: ``P(F(k, ν) > score/k)``.
-    """
-
-    effect: str
-    starts: list[dict[str, float]]
-    score: float
-    k: int
-    p_value: float
-
-
-# singular values below this fraction of the largest span no direction of a Jacobian: a
-# parameter the data do not determine (a base column of zeros, two collinear columns)
-_RANK_RTOL = 1e-10
-
-
-def base_basis(j_base: Float[np.ndarray, "m q"]) -> Float[np.ndarray, "m p"]:
-    """Orthonormal basis [m, rank] of the span of the current model's Jacobian columns."""
-    u, sv, _ = np.linalg.svd(j_base, full_matrices=False)
-    if not sv.size or not sv[0] > 0:
-        return u[:, :0]
-    return u[:, sv > sv[0] * _RANK_RTOL]
-
-
-def score_statistic(
-    r: Float[np.ndarray, " m"], basis: Float[np.ndarray, "m p"], cols: Float[np.ndarray, "m k"]
-) -> float:
-    """``S = (Mr)ᵀ·MC·(CᵀMC)⁺·CᵀMr`` [units of r²] (:func:`screen`), ``M = I − UUᵀ`` with
-    ``U = basis``: the drop of ``‖r + J_b·δ_b + C·δ_c‖²`` from its minimum over δ_b alone to
-    its minimum over both (one Gauss–Newton step of the nested model)."""
-    mr = r - basis @ (basis.T @ r)
-    mc = cols - basis @ (basis.T @ cols)
-    if not np.all(np.isfinite(mc)) or not mc.size:
-        return 0.0
-    # directions of C the base already spans leave only rounding in MC: measured against
-    # C's own scale, not MC's, they are dropped rather than fitted to noise
-    u, sv, _ = np.linalg.svd(mc, full_matrices=False)
-    scale = float(np.max(np.linalg.norm(cols, axis=0)))
-    proj = u[:, sv > scale * _RANK_RTOL].T @ mr
-    return float(proj @ proj)
-
-
-def screen(
-    current: Fitted,
-    todo: Sequence[tuple[str, Sequence[Mapping[str, float]]]],
-    settings: OutputErrorSettings,
-    nu: int,
-) -> list[Score]:
-    """Rao's score test of every candidate ``(effect, starts)`` at ``current``'s optimum,
-    in the judge's own metric (output error in units of σ̂_x).
-
-    At the fitted model, with ``r`` [m] its residual r_aug and ``J_b`` the Jacobian of its
-    free parameters and segment states, a term whose parameters ``β`` sit at their null adds
-    columns ``C = ∂r/∂β`` [m, k] (its nonlinear parameters at a start point). With ``M`` the
-    projection off ``J_b``'s span,
-
-        S = (Mr)ᵀ·MC·(CᵀMC)⁺·CᵀMr                                        [σ_x²]
-
-    is the cost one Gauss–Newton step in ``β`` (with the base re-adjusted) would remove: the
-    likelihood ratio of the model linearised at the current fit. Where the current model is
-    right it follows ``χ²_k`` (σ known), ``k·F(k, ν)`` with σ̂_x², and it tends to the LR of
-    the refit under local alternatives, so it measures the same evidence as the judge's LR
-    from one Jacobian, without a fit. The projection also removes what the current fit had
-    left to descend (a fit stopped short of its minimum), so ``S`` is the term's own share.
-
-    The Jacobians are those of the step's fits (:func:`~fricjax.output_error.jacobian_at`
-    along K = :meth:`Superset.n_directions` directions, the program the fits already
-    traced): each call takes the current model's columns and those of as many candidates
-    without nonlinear parameters as fill the remaining directions, and one call is made at
-    each start of the others. A call over every candidate at once would be another
-    program, traced and loaded anew in every process (seconds) for a few tangents saved."""
-    sup = current.superset
-    spec = sup.problem.spec
-    setup = output_error_residual(
-        current.problem, current.fit.params, settings, (current.fit.states_x, current.fit.states_v)
-    )
-    theta = setup.x0
-    names = list(spec.names)
-    P = len(names)
-    pinned = _pinned(current)
-    base_params = [i for i, q in enumerate(names) if spec[q].free and q not in pinned]
-    base_idx = base_params + list(range(P, theta.shape[0]))
-    K = sup.n_directions(current.active)
-
-    def jacobian(row: np.ndarray, extra: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-        chosen = [*base_params, *extra]
-        # a term with parameters outside the spec's free ones can need more than K
-        dirs = np.zeros((max(K, len(chosen)), P))
-        dirs[np.arange(len(chosen)), chosen] = 1.0
-        res = eqx.tree_at(lambda m: m.directions, setup.residual, jnp.asarray(dirs))
-        r, jac = jacobian_at(res, jnp.asarray(row))
-        return np.asarray(r), np.asarray(jac)
-
-    own: dict[str, list[int]] = {}
-    for effect, _ in todo:
-        grid = candidate(effect).grid(sup.record)
-        own[effect] = [names.index(q) for q in sup.names[effect] if q not in grid]
-    # candidates without nonlinear starts, packed into calls of K directions
-    room = K - len(base_params)
-    chunks: list[list[str]] = []
-    for effect, nl_starts in todo:
-        if nl_starts:
-            continue
-        if not chunks or sum(len(own[e]) for e in chunks[-1]) + len(own[effect]) > room:
-            chunks.append([])
-        chunks[-1].append(effect)
-    r, jac = jacobian(theta, [i for e in (chunks[0] if chunks else []) for i in own[e]])
-    basis = base_basis(jac[:, base_idx])
-    scores: dict[str, list[tuple[float, dict[str, float]]]] = {}
-    for k, chunk in enumerate(chunks):
-        at = jac if k == 0 else jacobian(theta, [i for e in chunk for i in own[e]])[1]
-        for effect in chunk:
-            scores[effect] = [(score_statistic(r, basis, at[:, own[effect]]), {})]
-    for effect, nl_starts in todo:
-        for nl in nl_starts:
-            # the term's columns at this start: its amplitudes at their null leave the
-            # trajectory, r and the base's columns as they are
-            row = theta.copy()
-            for q, val in nl.items():
-                row[names.index(q)] = val
-            at = jacobian(row, own[effect])[1]
-            stat = score_statistic(r, basis, at[:, own[effect]])
-            scores.setdefault(effect, []).append((stat, dict(nl)))
-    ks = {effect: len(own[effect]) for effect, _ in todo}
-    out = []
-    for effect, _ in todo:
-        ranked = sorted(scores[effect], key=lambda s: -s[0])
-        best, k = ranked[0][0], max(ks[effect], 1)
-        out.append(Score(effect, [nl for _, nl in ranked], best, k, float(f_pvalue(best, k, nu))))
-    return out
-
-
-# -- starts --------------------------------------------------------------------------------
+# -- the starts -----------------------------------------------------------------------
 
 
 @stored

@@ -21,7 +21,7 @@ from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt
 
 if TYPE_CHECKING:
-    from fricjax.diagnose.judge import Score
+    from fricjax.diagnose.judge import CandidateFit
     from fricjax.diagnose.run import Diagnosis, Step
 
 _PLACES = {
@@ -135,7 +135,14 @@ def _findings_verdict(diag: Diagnosis) -> str:
         )
     parts = []
     if named:
-        parts.append(f"**{len(named)} finding(s)**: " + ", ".join(f"`{e}`" for e in named))
+        shown = [
+            " or ".join(
+                f"`{e}`" for e in [f["effect"], *(a["effect"] for a in f.get("alternatives", []))]
+            )
+            for f in diag.findings
+            if f["effect"] != "unexplained"
+        ]
+        parts.append(f"**{len(named)} finding(s)**: " + ", ".join(shown))
     if unexplained:
         parts.append(
             f"**{unexplained} unexplained** (the record holds more than its noise, and no "
@@ -199,43 +206,61 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
             )
             blocks.append(
                 Para(
-                    f"ΔBIC {f['delta_bic']:.1f}, p = {f['p_value']:.2g}; record EMS "
-                    f"{_pct(f['record_ems_gain'])}, simulation error "
-                    f"{_pct(f['record_simulation_gain'])} better; held out: {held}."
+                    f"ΔBIC {f['delta_bic']:.1f}, p = {f['p_value']:.2g}; held out: {held}; "
+                    f"record EMS {_pct(f['record_ems_gain'])}, simulation error "
+                    f"{_pct(f['record_simulation_gain'])} better."
                 )
             )
+            for w in f.get("warnings", []):
+                blocks.append(Para(f"**Warning**: {w}.", "note"))
+            for a in f.get("alternatives", []):
+                shown, _ = params_text(diag, a["params"])
+                blocks.append(
+                    Para(
+                        f"Or `{a['effect']}` ({where_text(a['location'])}; {shown}): ΔBIC "
+                        f"{a['delta_bic']:.1f}; the record does not prefer "
+                        f"`{f['effect']}` over it (Vuong t = {a['vuong_t']:.2f}, "
+                        f"p = {a['vuong_p']:.2g})."
+                    )
+                )
     return blocks
 
 
-def _candidate_row(st: Step, sc: Score) -> tuple[str, ...]:
-    """One candidate's row: its score, and its refit's statistic and decision if refitted."""
-    head = (sc.effect, f"{sc.score:.1f}", f"{sc.p_value:.2g}")
-    f = next((f for f in st.fits if f.effect == sc.effect), None)
-    if f is None:
-        return (*head, "not refitted", "", "", "")
-    named = {d.fit.effect: d.named for d in st.decisions}
-    decision = "named" if named.get(sc.effect) else ("refused" if sc.effect in named else "")
-    return (*head, f"{f.lr:.1f}", f"{f.p_value:.2g}", f"{f.delta_bic:.1f}", decision)
+def _candidate_row(st: Step, f: CandidateFit) -> tuple[str, ...]:
+    """One candidate's row: its refit's statistic and what the rule made of it."""
+    decided = {d.fit.effect: d for d in st.decisions}
+    chosen = st.chosen
+    if f.effect in decided:
+        d = decided[f.effect]
+        decision = "named" if d.named else "refused (cross-validation)"
+    elif chosen is not None and f.effect in {a.fit.effect for a in chosen.alternatives}:
+        decision = f"cannot be told from {chosen.fit.effect}"
+    elif f.passes(st.limit, st.min_delta_bic):
+        decision = "passes"
+    else:
+        decision = ""
+    return (
+        f.effect,
+        str(f.k),
+        str(f.looks),
+        f"{f.lr:.1f}",
+        f"{f.p_value:.2g}",
+        f"{f.delta_bic:.1f}",
+        decision,
+    )
 
 
 def candidate_blocks(diag: Diagnosis) -> list[Block]:
     blocks: list[Block] = []
     for i, st in enumerate(diag.steps, 1):
-        rows = tuple(_candidate_row(st, sc) for sc in st.scores)
-        which = (
-            f"those with p < {st.screen_limit:.2g} refitted"
-            if math.isfinite(st.screen_limit)
-            else "all refitted (the current model's lack of fit is significant)"
-        )
+        rows = tuple(_candidate_row(st, f) for f in sorted(st.fits, key=lambda f: -f.delta_bic))
         blocks += [
             Para(
-                f"Step {i}: each candidate's score test at the current model; {which}; a "
-                f"refit must reach p < {st.limit:.2g} and ΔBIC > {st.min_delta_bic:g}:"
+                f"Step {i}: every candidate refitted from each of its starts; one must reach "
+                f"p < {st.limit:.2g} (p of the best of its shapes) and ΔBIC > "
+                f"{st.min_delta_bic:g}, and hold in cross-validation:"
             ),
-            Table(
-                ("candidate", "score [σ_x²]", "score p", "LR [σ_x²]", "p", "ΔBIC", "decision"),
-                rows,
-            ),
+            Table(("candidate", "k", "shapes", "LR [σ_x²]", "p", "ΔBIC", "decision"), rows),
         ]
     return [Heading("Candidates"), *blocks] if blocks else []
 

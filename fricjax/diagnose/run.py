@@ -6,21 +6,23 @@ its estimate), the record's own noise (:mod:`~fricjax.diagnose.evidence`), the c
 (:mod:`~fricjax.diagnose.judge`), the held-out checks (:mod:`~fricjax.diagnose.heldout`),
 the report (:mod:`~fricjax.diagnose.report`).
 
-The rule (:func:`decide`). Forward selection up to ``max_terms``: at each step every
-applicable candidate's score test is taken at the current model (one Jacobian, no fit), those
-significant at α (all of them where the current model's lack of fit is significant) are
-fitted next to it (highest score first), and the best by ΔBIC of the
-fits that pass ``p < α/C`` (C candidates at that step) and ``ΔBIC > min_delta_bic`` is named
-when also
+The rule (:func:`decide`). Forward selection up to ``max_terms``. At each step every
+applicable candidate is refitted by output error from each of its starts (one batched
+program, :func:`~fricjax.diagnose.judge.fit_candidates`); one metric judges, the output error
+in units of the record's own noise. A candidate passes where its calibrated p (the best of
+its shapes, :func:`~fricjax.diagnose.judge.looks`) is below ``α/C`` (C candidates at that
+step) and its ΔBIC above ``min_delta_bic``. The passing candidates are taken by ΔBIC; the
+first whose gain holds in cross-validation (every held-out check that judges it gains,
+:mod:`~fricjax.diagnose.heldout`) is named, together with the passing candidates the record
+cannot tell from it (Vuong's test not significant at ``ambiguity``,
+:func:`~fricjax.diagnose.judge.vuong`): an ambiguity set, the best first. The record's
+equation-error EMS and open-loop simulation error are reported beside each finding, with a
+warning where they get worse; they decide nothing.
 
-* the record's own EMS and open-loop simulation error do not get worse with it, and
-* every held-out check that can judge it (the record's split, a second recording) shows a
-  positive gain, and at least one can.
-
-A candidate that passes the statistics but not the rest is reported as ``unexplained`` at its
-place, never named. When nothing is named and the model's output-error lack of fit against
-the record's noise is significant (``F(ν_r, ν)``, p < α), the finding is ``unexplained`` at
-the segment of the record that misfits most.
+A candidate that passes the statistics but not cross-validation is reported as
+``unexplained`` at its place, never named. When nothing is named and the model's
+output-error lack of fit against the record's noise is significant (``F(ν_r, ν)``, p < α),
+the finding is ``unexplained`` at the segment of the record that misfits most.
 
 Output (:func:`write_diagnosis`): ``diagnosis.json`` (docs/formats.md), ``report.md`` and
 ``report.html`` (:mod:`fricjax.diagnose.report`), ``models.h5`` with the base and final models.
@@ -40,11 +42,10 @@ import numpy as np
 
 from fricjax.diagnose.catalogue import candidate
 from fricjax.diagnose.evidence import Evidence, NearRest, near_rest_band, record_noise
-from fricjax.diagnose.heldout import Check, SecondRecording, Split, Verdict
+from fricjax.diagnose.heldout import Check, CrossValidation, SecondRecording, Verdict
 from fricjax.diagnose.judge import (
     CandidateFit,
     Fitted,
-    Score,
     Superset,
     fit_base,
     fit_candidates,
@@ -52,9 +53,9 @@ from fricjax.diagnose.judge import (
     rebased,
     record_gains,
     remaining,
-    screen,
     simulation_error,
     starts,
+    vuong,
 )
 from fricjax.diagnose.stages import LIMITED, TIME_LIMIT_S, Clock, OnStage
 from fricjax.errors import FricjaxError, where
@@ -74,36 +75,23 @@ class DiagnoseSettings:
 
     alpha: family-wise false-alarm rate of a diagnosis on a record with nothing missing.
         Split over the C candidates of a step (Bonferroni, ``α/C`` each: valid whatever
-        their dependence) and spent once more on the lack-of-fit test that makes a finding
-        ``unexplained``; a null record thus gets any finding with probability ≤ 2α (2 % at
-        the default 0.01, under the 5 % the project targets).
-        It is also the level of the score screen (:func:`~fricjax.diagnose.judge.screen`):
-        where the current model fits the record to its noise (lack of fit not significant
-        at α), a candidate is refitted only where its score test is significant at α
-        itself. The score is the likelihood ratio of the model linearised at the fit, the
-        LR's local equivalent; the screen's level is α·C times the judge's, so a term is
-        dropped unfitted only where its linearised evidence falls short by that factor, and
-        the screen can only remove candidates, never pass one: the family-wise rate stays
-        α. Where the lack of fit is significant the model is not near enough to the
-        truth for a local statistic (a term the base has absorbed by bending its own
-        parameters scores nothing at the base yet pays when refitted), and every candidate
-        is refitted.
+        their dependence), each candidate's p already that of the best of its shapes
+        (:func:`~fricjax.diagnose.judge.looks`), and spent once more on the lack-of-fit
+        test that makes a finding ``unexplained``; a null record thus gets any finding
+        with probability ≤ 2α (2 % at the default 0.01, under the 5 % the project targets).
     min_delta_bic: a term must lower BIC by more than this: 10 is "very strong" evidence on
         Kass & Raftery's scale (posterior odds above 150:1 at equal priors). It guards the
         long records where p alone would pass effects too small to matter.
     max_terms: most terms named (forward selection stops earlier when none passes).
-    n_starts: grid points per candidate's nonlinear parameters that are scored in output
-        error (:func:`~fricjax.diagnose.judge.screen`): the best local maxima of the cheap
-        equation-error ranking, the second guarding against a ranking bent by the equation
-        error it is taken from. Where the screen applies (the current model fits to its
-        noise) the refit starts from the best-scored point only: the score is the judge's
-        own metric there, and the catalogue's grids are spaced so that LM from the best
-        point reaches its peak; elsewhere every point starts one round and the best is
-        continued.
-    heldout: fraction of the record the split check holds out. 0.3 leaves the training part
-        more than twice the unknowns of a 0.27 s record's model (heldout.too_short) and the
-        test part long enough (≥ 80 samples at 1 kHz) for its cost to be a χ² of many
-        degrees of freedom.
+    n_starts: grid points per candidate's nonlinear parameters that start a refit: the
+        best local maxima of the cheap equation-error ranking
+        (:func:`~fricjax.diagnose.judge.starts`), the second guarding against a ranking
+        bent by the equation error it is taken from. Every start is refitted.
+    ambiguity: level of Vuong's test (:func:`~fricjax.diagnose.judge.vuong`) that tells a
+        passing candidate apart from the named one: a candidate the record does not
+        prefer less at this level is named with it, as an ambiguity set. 0.05, one-sided:
+        a true term left out of the set by chance one time in twenty at most, while two
+        terms the record does tell apart are not both reported.
     segment_s: segment length of the multiple shooting [s]: short enough that a simulation
         from the base's first estimate, which may have absorbed the missing physics far from
         the plant's values, stays within the noise of its own start (LM then works on a
@@ -124,7 +112,7 @@ class DiagnoseSettings:
     min_delta_bic: float = 10.0
     max_terms: int = 3
     n_starts: int = 2
-    heldout: float = 0.3
+    ambiguity: float = 0.05
     segment_s: float = 0.05
     max_steps: int = 100
     time_limit: float = TIME_LIMIT_S
@@ -155,7 +143,7 @@ class DiagnoseSettings:
             "min_delta_bic": (float, lambda v: 0 <= v < math.inf, ">= 0 and finite"),
             "max_terms": (int, lambda v: v >= 1, ">= 1"),
             "n_starts": (int, lambda v: v >= 1, ">= 1"),
-            "heldout": (float, lambda v: 0 < v < 0.9, "in (0, 0.9)"),
+            "ambiguity": (float, lambda v: 0 < v < 1, "in (0, 1)"),
             "segment_s": (float, lambda v: 0 < v < math.inf, "> 0 seconds and finite"),
             "max_steps": (int, lambda v: v >= 1, ">= 1"),
             "time_limit": (float, lambda v: v > 0, "> 0 seconds (inf: none)"),
@@ -195,45 +183,46 @@ class DiagnoseSettings:
 
 
 @dataclass(frozen=True)
+class Alternative:
+    """A passing candidate the record cannot tell from the named one: Vuong's ``t`` of the
+    named fit over this one (``dof`` degrees of freedom) and its one-sided p."""
+
+    fit: CandidateFit
+    t: float
+    dof: int
+    p_value: float
+
+
+@dataclass(frozen=True)
 class Decision:
-    """What the rule made of one candidate that passed the statistics: its record gains
-    (EMS, simulation error), its held-out verdicts, and whether it is named."""
+    """What the rule made of one candidate that passed the statistics: its held-out
+    verdicts (they decide), its record gains in EMS and simulation error (reported only),
+    and the candidates it cannot be told from."""
 
     fit: CandidateFit
     ems_gain: float
     simulation_gain: float
     verdicts: tuple[Verdict, ...]
-
-    @property
-    def record_ok(self) -> bool:
-        """The record's own EMS and simulation error do not get worse (NaN: no figure)."""
-        return all(not g < 0 for g in (self.ems_gain, self.simulation_gain))
-
-    @property
-    def heldout_ok(self) -> bool:
-        """Every check that judges gains, and at least one judges."""
-        judged = [v for v in self.verdicts if v.judged]
-        return bool(judged) and all(v.passed for v in judged)
+    alternatives: tuple[Alternative, ...] = ()
 
     @property
     def named(self) -> bool:
-        return self.record_ok and self.heldout_ok
+        """Every held-out check that judges gains, and at least one judges."""
+        judged = [v for v in self.verdicts if v.judged]
+        return bool(judged) and all(v.passed for v in judged)
 
 
 @dataclass(frozen=True)
 class Step:
-    """One step of forward selection: every candidate's score test, the fits of those it
-    passed (``p < screen_limit``; ``inf`` where the current model's lack of fit is
-    significant and every candidate is refitted), the decisions on the fits that passed
-    the statistics (best first), the per-candidate limit α/C, and the model before."""
+    """One step of forward selection: every candidate's refit, the decisions on the fits
+    that passed the statistics (best first, up to the named one), the per-candidate limit
+    α/C, and the model before."""
 
     current: Fitted
-    scores: tuple[Score, ...]
     fits: tuple[CandidateFit, ...]
     decisions: tuple[Decision, ...]
     limit: float
     min_delta_bic: float
-    screen_limit: float
 
     @property
     def chosen(self) -> Decision | None:
@@ -277,8 +266,6 @@ class Diagnosis:
                     {
                         "step": i + 1,
                         "limit_p": st.limit,
-                        "screen_limit_p": st.screen_limit,
-                        "screened": [_score_json(sc, st) for sc in st.scores],
                         "tested": [_fit_json(f) for f in st.fits],
                         "judged": [_decision_json(d) for d in st.decisions],
                     }
@@ -290,22 +277,14 @@ class Diagnosis:
         )
 
 
-def _score_json(sc: Score, st: Step) -> dict[str, Any]:
-    return {
-        "effect": sc.effect,
-        "score": sc.score,
-        "k": sc.k,
-        "p_value": sc.p_value,
-        "refit": any(f.effect == sc.effect for f in st.fits),
-    }
-
-
 def _fit_json(f: CandidateFit) -> dict[str, Any]:
     return {
         "effect": f.effect,
         "lr": f.lr,
         "k": f.k,
         "p_value": f.p_value,
+        "p_raw": f.p_raw,
+        "looks": f.looks,
         "delta_bic": f.delta_bic,
         "cost_base": f.base.cost,
         "cost_term": f.fitted.cost,
@@ -320,6 +299,7 @@ def _decision_json(d: Decision) -> dict[str, Any]:
         "record_ems_gain": d.ems_gain,
         "record_simulation_gain": d.simulation_gain,
         "heldout": [v.as_json() for v in d.verdicts],
+        "alternatives": [a.fit.effect for a in d.alternatives],
     }
 
 
@@ -386,64 +366,53 @@ def decide(
                     clock.untested("candidates", effect)
                     continue
                 todo.append((effect, starts(current, effect, band, settings.n_starts)))
-        with clock.stage("candidates", "score test of every candidate"):
-            scores = screen(current, todo, oe, evidence.nu)
-        # the score stands for the LR only near the current model: where that model's own lack
-        # of fit is significant, the term may pay far from it, so every candidate is refitted
-        local = lack_of_fit_p(current, evidence.nu) >= settings.alpha
-        screen_limit = settings.alpha if local else math.inf
-        refit = sorted((s for s in scores if s.p_value < screen_limit), key=lambda s: -s.score)
-        fits: list[CandidateFit] = []
-        # a candidate is started only if the longest one so far would still end within the
-        # limits: the budget is then overrun by a misjudged length, not by a whole candidate
-        longest = 0.0
-        with clock.stage("candidates", "output-error fits of the candidates"):
-            for sc in refit:
-                if clock.over("candidates", longest):
-                    clock.untested("candidates", sc.effect, longest)
-                    continue
-                clock.note(f"output-error fit of {sc.effect}")
-                began = clock.elapsed()
-                # near the model the score ranks the starts in the judge's metric; far from
-                # it the ranking says little, and each start is fitted
-                st = sc.starts[:1] if local else sc.starts
-                fits += fit_candidates(current, [(sc.effect, st)], oe, evidence.nu)
-                longest = max(longest, clock.elapsed() - began)
+        with clock.stage("candidates", f"output-error fits of {len(todo)} candidates"):
+            fits = fit_candidates(current, todo, oe, evidence.nu) if todo else []
         limit = settings.alpha / len(cands)
         passing = sorted(
             (f for f in fits if f.passes(limit, settings.min_delta_bic)),
             key=lambda f: -f.delta_bic,
         )
         decisions: list[Decision] = []
-        with clock.stage("heldout", "record gains and held-out checks"):
-            for f in passing:
+        with clock.stage("heldout", "held-out checks"):
+            for i, f in enumerate(passing):
                 if clock.over("heldout"):
                     clock.untested("heldout", f.effect)
                     continue
-                clock.note(f"judging {f.effect}")
+                clock.note(f"cross-validating {f.effect}")
                 f = rebased(f, oe, evidence.nu)
                 if not f.passes(limit, settings.min_delta_bic):
                     continue
-                gains = record_gains(f.base, f.fitted)
                 place = candidate(f.effect).location(f.params, problem)
                 verdicts = tuple(ch.judge(f.base, f.fitted, place) for ch in checks)
-                decisions.append(Decision(f, *gains, verdicts))
-                if decisions[-1].named:
+                gains = record_gains(f.base, f.fitted)
+                others = [g for g in passing[i + 1 :] if g.effect != f.effect]
+                decision = Decision(f, *gains, verdicts, _alternatives(f, others, settings))
+                decisions.append(decision)
+                if decision.named:
                     break
-        step = Step(
-            current,
-            tuple(scores),
-            tuple(fits),
-            tuple(decisions),
-            limit,
-            settings.min_delta_bic,
-            screen_limit,
-        )
+        step = Step(current, tuple(fits), tuple(decisions), limit, settings.min_delta_bic)
         steps.append(step)
         if step.chosen is None:
             break
         current = step.chosen.fit.fitted
     return steps
+
+
+def _alternatives(
+    named: CandidateFit, others: list[CandidateFit], settings: DiagnoseSettings
+) -> tuple[Alternative, ...]:
+    """The passing candidates the record does not prefer ``named`` over (Vuong's test at
+    ``settings.ambiguity``, one-sided), best ΔBIC first."""
+    from scipy import stats
+
+    out = []
+    for g in others:
+        t, dof = vuong(named.fitted, g.fitted)
+        p = float(stats.t.sf(t, dof))
+        if p >= settings.ambiguity:
+            out.append(Alternative(g, t, dof, p))
+    return tuple(out)
 
 
 def diagnose(
@@ -482,14 +451,21 @@ def diagnose(
             return True
 
         base = fit_base(Superset.build(problem), problem.spec.as_dict(run.value), oe, more)
-    checks: list[Check] = [Split(settings.heldout, oe)]
+    checks: list[Check] = [CrossValidation(oe)]
     if validation is not None:
         checks.append(SecondRecording(_undecimated(validation), oe))
     steps = decide(problem, base, settings, evidence, band, checks, clock)
     named = [st.chosen for st in steps if st.chosen is not None]
     final = named[-1].fit.fitted if named else base
     findings = [_finding(problem, d, st) for st in steps if (d := st.chosen) is not None]
-    refused = [_refused(problem, d) for st in steps for d in st.decisions if not d.named]
+    # a candidate refused at one step and named at a later one is a finding, not both
+    named_effects = {d.fit.effect for d in named}
+    refused_by: dict[str, Decision] = {}
+    for st in steps:
+        for d in st.decisions:
+            if not d.named and d.fit.effect not in named_effects:
+                refused_by.setdefault(d.fit.effect, d)
+    refused = [_refused(problem, d) for d in refused_by.values()]
     lof_before, lof_after = lack_of_fit_p(base, evidence.nu), lack_of_fit_p(final, evidence.nu)
     if refused:
         findings += refused
@@ -537,47 +513,98 @@ def _undecimated(problem: Problem) -> Problem:
     return replace(problem, preprocess=replace(problem.preprocess, decimate=1))
 
 
+def _share(f: CandidateFit) -> float:
+    """The share of the base's misfit beyond the noise that the term removes:
+    ``LR / (E_base − ν_r)``, ν_r the base's residual degrees of freedom (what noise alone
+    leaves), in [0, 1]. On a real record every statistic is astronomically significant;
+    this says how much of what is wrong the term accounts for."""
+    base = f.base.fit
+    dof = max(base.n_residual - f.base.n_free - 2 * base.n_segments, 1)
+    excess = float(base.cost) - dof
+    return float(min(max(f.lr / excess, 0.0), 1.0)) if excess > 0 else math.nan
+
+
+def _warnings(d: Decision) -> list[str]:
+    """Plain warnings where the term makes what a user sees worse (reported, not judged)."""
+    out = []
+    if d.ems_gain < 0:
+        out.append(
+            f"the record's equation-error EMS gets worse with it ({100 * d.ems_gain:+.1f} %)"
+        )
+    if d.simulation_gain < 0:
+        out.append(
+            f"the record's open-loop simulation error gets worse with it "
+            f"({100 * d.simulation_gain:+.1f} %)"
+        )
+    return out
+
+
 def _finding(problem: Problem, d: Decision, step: Step) -> dict[str, Any]:
-    """One named finding of diagnosis.json."""
+    """One named finding of diagnosis.json; an ambiguity set keeps its best member as
+    ``effect`` and the others under ``alternatives``."""
     f = d.fit
     cand = candidate(f.effect)
     runner = sorted((g for g in step.fits if g is not f), key=lambda g: -g.delta_bic)
+    share = _share(f)
+    explanation = cand.explain(f.params, problem) + (
+        f" With it the output error of the record falls from {f.base.cost:.4g} to "
+        f"{f.fitted.cost:.4g} σ_x² (LR = {f.lr:.1f}, {f.k} parameters)"
+        + (
+            f", {100 * share:.0f} % of the misfit beyond the noise."
+            if math.isfinite(share)
+            else "."
+        )
+    )
+    if d.alternatives:
+        names = ", ".join(a.fit.effect for a in d.alternatives)
+        explanation += (
+            f" The record cannot tell it from {names}: each explains it about as well "
+            "(Vuong's test not significant); a test that moves the body differently would "
+            "separate them."
+        )
     return {
         "effect": f.effect,
-        "explanation": cand.explain(f.params, problem)
-        + (
-            f" With it the output error of the record falls from {f.base.cost:.4g} to "
-            f"{f.fitted.cost:.4g} σ_x² (LR = {f.lr:.1f}, {f.k} parameters)."
-        ),
+        "explanation": explanation,
         "location": cand.location(f.params, problem),
         "params": f.params,
         "at_bound": at_bounds(f.fitted.problem.spec, f.params),
         "delta_bic": f.delta_bic,
         "p_value": f.p_value,
         "lr": f.lr,
+        "misfit_share": share,
         "test": "output error",
         "record_ems_gain": d.ems_gain,
         "record_simulation_gain": d.simulation_gain,
+        "warnings": _warnings(d),
         "heldout": [v.as_json() for v in d.verdicts],
+        "alternatives": [
+            {
+                "effect": a.fit.effect,
+                "params": a.fit.params,
+                "location": candidate(a.fit.effect).location(a.fit.params, problem),
+                "delta_bic": a.fit.delta_bic,
+                "p_value": a.fit.p_value,
+                "vuong_t": a.t,
+                "vuong_p": a.p_value,
+            }
+            for a in d.alternatives
+        ],
         "runner_up": runner[0].effect if runner else "",
         "runner_up_delta_bic": runner[0].delta_bic if runner else math.nan,
     }
 
 
 def _refused(problem: Problem, d: Decision) -> dict[str, Any]:
-    """``unexplained`` at the place of a candidate that passed the statistics but not the
-    rest of the rule: the record holds something there that this term does not explain in a
-    way that carries over."""
+    """``unexplained`` at the place of a candidate that passed the statistics but not
+    cross-validation: the record holds something there that this term does not explain in
+    a way that carries over to data its fit has not seen."""
     f = d.fit
     location = candidate(f.effect).location(f.params, problem)
-    if not d.record_ok:
-        which = "EMS" if d.ems_gain < 0 else "simulation error"
-        why = f"with it the record's own {which} gets worse"
-    elif not any(v.judged for v in d.verdicts):
+    if not any(v.judged for v in d.verdicts):
         why = "no held-out check can judge it (" + "; ".join(v.why for v in d.verdicts) + ")"
     else:
         worst = min((v for v in d.verdicts if v.judged), key=lambda v: v.gain)
-        why = f"on the {worst.on} it makes the fit worse ({100 * worst.gain:+.1f} %)"
+        why = f"on the {worst.on} it makes the held-out fit worse ({100 * worst.gain:+.1f} %)"
     return {
         "effect": "unexplained",
         "explanation": (

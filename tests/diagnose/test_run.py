@@ -18,7 +18,7 @@ def test_diagnose_settings_refuse_a_wrong_type_or_range_in_one_line() -> None:
     cases = [
         ({"alpha": "0.01"}, "c.toml: [diagnose].alpha: must be in (0, 1), got '0.01'"),
         ({"alpha": 1.0}, "c.toml: [diagnose].alpha: must be in (0, 1), got 1.0"),
-        ({"heldout": 0.95}, "c.toml: [diagnose].heldout: must be in (0, 0.9), got 0.95"),
+        ({"ambiguity": 1.5}, "c.toml: [diagnose].ambiguity: must be in (0, 1), got 1.5"),
         ({"max_terms": True}, "c.toml: [diagnose].max_terms: must be >= 1, got True"),
         ({"n_starts": 0}, "c.toml: [diagnose].n_starts: must be >= 1, got 0"),
         ({"n_mc": 10}, "c.toml: [diagnose].n_mc: unknown key"),
