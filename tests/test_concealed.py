@@ -221,6 +221,39 @@ def _diag(*names: str) -> dict:
     return {"findings": [{"effect": n} for n in names]}
 
 
+def test_the_own_refit_columns_read_the_diagnosis_first_step() -> None:
+    """The true term passes the diagnosis' own rule at step 1 (p under its limit, ΔBIC over
+    its bar), leads by ΔBIC or not; an ambiguity set of two holding the truth counts."""
+
+    def diag(tested: dict[str, tuple[float, float]], first: str, alternatives=()) -> dict:
+        return {
+            "findings": [{"effect": first, "alternatives": [{"effect": a} for a in alternatives]}],
+            "candidates": [
+                {
+                    "limit_p": 1e-3,
+                    "min_delta_bic": 10.0,
+                    "tested": [
+                        {"effect": e, "p_value": p, "delta_bic": d} for e, (p, d) in tested.items()
+                    ],
+                }
+            ],
+        }
+
+    truth = _truth("a", "impact", "catalogue", True)
+    lead = diag({"impact": (1e-9, 400.0), "position_bump": (1e-8, 300.0)}, "impact")
+    row = score.outcome(truth, _run(), lead)
+    assert row["own_pays"] and row["own_best"] and row["top1"] and row["in_set2"]
+    pair = diag(
+        {"impact": (1e-9, 300.0), "position_bump": (1e-9, 400.0)}, "position_bump", ["impact"]
+    )
+    row = score.outcome(truth, _run(), pair)
+    assert row["own_pays"] and not row["own_best"] and not row["top1"] and row["in_set2"]
+    weak = diag({"impact": (1e-2, 30.0)}, "")
+    assert not score.outcome(truth, _run(), weak)["own_pays"]  # p above its limit
+    small = diag({"impact": (1e-9, 8.0)}, "")
+    assert not score.outcome(truth, _run(), small)["own_pays"]  # ΔBIC under its bar
+
+
 def test_the_scorer_tallies_a_fake_set_of_diagnoses() -> None:
     """Six catalogue cases (one short of its level), two nulls, three outside effects and
     one timeout: the counts of each column are the hand-counted ones."""
@@ -310,7 +343,11 @@ def test_the_report_reads_diagnosis_files_and_truths_only_from_their_folders(
     t = score.tally(by["A new"])  # named every hidden effect: the outside one is still wrong
     assert (t["top1"], t["false"], t["wrong"]) == (1, 0, 1)
     text = "\n".join(score.group_table(by, "family", lambda r: r["family"]))
-    assert "| force | A old | 1/1 | 1/1 | 1/1 | 1/1 | 1/1 | 0/1 | 1/1 | 0 | 0 | 20 |" in text
+    # (no refits in these diagnosis files: the own-refit columns count none)
+    row = (
+        "| force | A old | 1/1 | 1/1 | 1/1 | 1/1 | 0/1 | – | – | – | 1/1 | 0/1 | 1/1 | 0 | 0 | 20 |"
+    )
+    assert row in text
     # a run made on other bits than the recording's no longer counts
     stale = tmp_path / "results" / "new" / "drawA" / "k1" / "run.json"
     stale.write_text(json.dumps({**_run(), "recording_sha256": "0" * 64}))

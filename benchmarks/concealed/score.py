@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -275,6 +276,24 @@ def outcome(truth: dict[str, Any], run: dict[str, Any] | None, diag: dict | None
     ok = row["status"] == "ok"
     row["detected"] = ok and bool(names)
     row["top1"] = ok and row["first"] == truth["right_answer"]
+    # the diagnosis' own refits at its first step (every candidate refitted from each of
+    # its starts): does the true term pass its rule there, and does it lead by ΔBIC?
+    step = ((diag or {}).get("candidates") or [{}])[0]
+    tested = {f["effect"]: f for f in step.get("tested", [])}
+    own = tested.get(truth["effect"])
+    row["own_pays"] = bool(
+        ok
+        and own is not None
+        and own["p_value"] is not None
+        and own["p_value"] < step["limit_p"]
+        and own["delta_bic"] > step.get("min_delta_bic", 10.0)
+    )
+    row["own_best"] = bool(
+        own is not None and max(tested.values(), key=lambda f: f["delta_bic"] or -math.inf) is own
+    )
+    first = ((diag or {}).get("findings") or [{}])[0]
+    members = [first.get("effect"), *(a["effect"] for a in first.get("alternatives", []))]
+    row["in_set2"] = ok and truth["right_answer"] in members and len(members) <= 2
     named = [n for n in names if n != gen.UNEXPLAINED]
     row["outside_outcome"] = (
         None
@@ -323,6 +342,7 @@ def tally(rows: Sequence[dict]) -> dict[str, Any]:
     done = [r for r in rows if r["status"] != "not run"]
     cat = [r for r in done if r["kind"] == "catalogue" and r["on_level"]]
     pays = [r for r in cat if r["pays"]]
+    own = [r for r in cat if r.get("own_pays")]
     nul = [r for r in done if r["kind"] == "null"]
     out_ = [r for r in done if r["kind"] == "outside" and r["on_level"]]
     walls = sorted(r["wall_s"] for r in done if r["status"] == "ok")
@@ -332,6 +352,10 @@ def tally(rows: Sequence[dict]) -> dict[str, Any]:
         "top1": sum(r["top1"] for r in cat),
         "pays": len(pays),
         "top1_pays": sum(r["top1"] for r in pays),
+        "own_pays": len(own),
+        "top1_own": sum(r["top1"] for r in own),
+        "set_own": sum(r["in_set2"] for r in own),
+        "best_own": sum(r["own_best"] for r in own),
         "null": len(nul),
         "false": sum(r["detected"] for r in nul),
         "outside": len(out_),
@@ -355,6 +379,10 @@ def _cells(t: dict[str, Any]) -> list[str]:
         _frac(t["top1"], t["cat"]),
         _frac(t["pays"], t["cat"]),
         _frac(t["top1_pays"], t["pays"]),
+        _frac(t["own_pays"], t["cat"]),
+        _frac(t["top1_own"], t["own_pays"]),
+        _frac(t["set_own"], t["own_pays"]),
+        _frac(t["best_own"], t["own_pays"]),
         _frac(t["false"], t["null"]),
         _frac(t["unexplained"], t["outside"]),
         _frac(t["wrong"], t["outside"]),
@@ -369,6 +397,10 @@ HEAD = [
     "top-1",
     "oracle pays",
     "top-1 where it pays",
+    "own refits pay",
+    "top-1 where own pays",
+    "in a set of ≤ 2 where own pays",
+    "largest ΔBIC where own pays",
     "false discoveries (nulls)",
     "outside → unexplained",
     "outside → wrong name",

@@ -266,6 +266,7 @@ class Diagnosis:
                     {
                         "step": i + 1,
                         "limit_p": st.limit,
+                        "min_delta_bic": st.min_delta_bic,
                         "tested": [_fit_json(f) for f in st.fits],
                         "judged": [_decision_json(d) for d in st.decisions],
                     }
