@@ -150,3 +150,21 @@ def test_a_gain_beyond_the_bound_does_not_count():
     # it stops on the bound's side, with less than gain_tol left to the bound's cost 9
     assert 1.9 < float(out.x[0]) <= 2.0
     assert 0.0 <= float(out.cost_after) - 9.0 < 1e-2
+
+
+def test_a_small_column_still_counts_in_the_stop():
+    # one stiff parameter (column 1e6) and one whose column is 0.1, its minimum 0.09 below
+    # the start: the decrement is regularised per column, so the stiff one does not drown
+    # the other's gain (regularised by 1e-12 of the largest curvature, 1, its 0.01 counted
+    # for 1 % of itself: the seed model's base stopped 2.9 σ_x² above its minimum so)
+    def fn(th):
+        return jnp.stack([1e6 * (th[0] - 1.0), 0.1 * (th[1] - 3.0)])
+
+    lo, hi = jnp.asarray([-10.0, -10.0]), jnp.asarray([10.0, 10.0])
+    loose = RefineSettings(rtol=1e-14, atol=1e-14, max_steps=500)
+    out = levenberg_marquardt(
+        fn, _with_jacobian(fn), jnp.asarray([1.0, 0.0]), lo, hi, jnp.ones(2, bool), loose, 1e-2
+    ).refined
+    assert bool(out.success)
+    assert float(out.cost_after) < 1e-2
+    assert abs(float(out.x[1]) - 3.0) < 0.35
