@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fricjax.config import Config, load_config
-from fricjax.data.noise import estimate_noise
-from fricjax.data.preprocess import PreprocessSettings, derivatives
+from fricjax.data.noise import FLIP_KAPPA, estimate_noise, reversals
+from fricjax.data.preprocess import PreprocessSettings, derivatives, noise_gains
 from fricjax.data.recording import MAX_MAGNITUDE, Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import check_outputs
@@ -188,6 +188,10 @@ def inspect_recording(
     d = derivatives(rec.t, rec.x, settings, u=rec.u, F=rec.F, source=str(recording))
     m = rec.mass
     force = m * d.a if m is not None else np.full_like(d.a, np.nan)
+    noise_x = estimate_noise(rec.x)
+    # a reversal is a crossing of the band where noise can flip the filtered velocity's sign
+    gain_v, _ = noise_gains(settings, 1.0 / rec.dt)
+    rest_speed = FLIP_KAPPA * gain_v * noise_x.sigma
     summary = {
         "file": str(recording),
         "name": rec.name,
@@ -200,7 +204,7 @@ def inspect_recording(
         f"x range [{units.position}]": f"{d.x.min():.4g} .. {d.x.max():.4g}",
         f"v range [{units.velocity}]": f"{d.v.min():.4g} .. {d.v.max():.4g}",
         f"a range [{units.acceleration}]": f"{d.a.min():.4g} .. {d.a.max():.4g}",
-        "velocity reversals": str(int(np.sum(np.diff(np.sign(d.v[np.abs(d.v) > 1e-9])) != 0))),
+        "velocity reversals": str(reversals(d.v, rest_speed)),
         "input u": "none"
         if rec.u is None
         else f"{rec.u.min():.4g} .. {rec.u.max():.4g} {rec.u_unit}",
@@ -210,11 +214,13 @@ def inspect_recording(
         "sha256": rec.sha256()[:16],
     }
     if m is not None:
-        summary[f"m·a range [{units.force}]"] = f"{force.min():.4g} .. {force.max():.4g}"
+        summary[f"{units.inertial} range [{units.force}]"] = (
+            f"{force.min():.4g} .. {force.max():.4g}"
+        )
     if rec.F is not None:
         summary[f"measured F [{units.force}]"] = f"{rec.F.min():.4g} .. {rec.F.max():.4g}"
     # the recording's own noise floor, independent of any model (fricjax.data.noise)
-    summary["x noise"] = estimate_noise(rec.x).describe(units.position)
+    summary["x noise"] = noise_x.describe(units.position)
     if rec.F is not None:
         summary["F noise"] = estimate_noise(rec.F).describe(units.force)
     if rec.u is not None:

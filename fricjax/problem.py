@@ -151,6 +151,7 @@ class Problem:
         rest: bool [n], samples at or near rest where the residual uses the stick/slip
             rule (:meth:`~fricjax.model.system.Model.rest_force`); set by the diagnosis
             from the noise level (|v| < 4·σ_v). ``None``: the seed's sliding law everywhere.
+        axis: ``"linear"`` or ``"rotary"`` (the config's), for the units of what is said.
     """
 
     model: Model
@@ -166,6 +167,7 @@ class Problem:
     preprocess: PreprocessSettings | None = None
     window: tuple[int, int] | None = None
     rest: np.ndarray | None = None
+    axis: str = "linear"
 
     @property
     def n(self) -> int:
@@ -338,6 +340,7 @@ def build_problem(
         checksum=checksum,
         source=rec.path,
         preprocess=settings,
+        axis=config.axis.kind,
     )
 
 

@@ -62,6 +62,7 @@ from fricjax.data.preprocess import PreprocessSettings, derivative_columns
 from fricjax.problem import EquationError, Problem, stack_trees
 from fricjax.programs import stored
 from fricjax.refine import ResidualNoise
+from fricjax.units import axis_units
 
 #: Records up to this many raw samples sum exactly over the unit vectors of x.
 EXACT_UP_TO = 1024
@@ -321,7 +322,8 @@ def residual_noises(
                     n_raw if exact else DRAWS,
                     var,
                 )
-            label = f"x noise {noise.describe('m')}; propagated through the preprocessing ({how})"
+            unit = axis_units(problems[i].axis).position
+            label = f"x noise {noise.describe(unit)}; propagated through the preprocessing ({how})"
             out[i] = ResidualNoise(jsj=jsj, trace=trace, trace_sq=trace_sq, label=label)
     return out
 

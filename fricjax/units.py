@@ -47,6 +47,8 @@ class AxisUnits:
     #: the word for the equation's force and for the moving mass
     force_word: str
     inertia_word: str
+    #: the inertial force of the equation of motion: m·a, or J·α on a rotary axis
+    inertial: str = "m·a"
 
     @property
     def force_sq(self) -> str:
@@ -102,6 +104,7 @@ ROTARY = AxisUnits(
     viscous="N·m·s/rad",
     force_word="torque",
     inertia_word="moment of inertia",
+    inertial="J·α",
 )
 
 # Linear SI unit of a term's parameter (as the terms write it) -> its rotary counterpart.

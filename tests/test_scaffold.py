@@ -126,7 +126,7 @@ def test_rotary_axis_is_carried_to_every_label(tmp_path: Path) -> None:
     summary, _ = inspect_recording(path, png=tmp_path / "r.png")
     assert summary["axis"] == "rotary"
     assert {"moment of inertia [kg·m²]", "x range [rad]", "v range [rad/s]"} <= set(summary)
-    assert "m·a range [N·m]" in summary and "measured F [N·m]" in summary
+    assert "J·α range [N·m]" in summary and "measured F [N·m]" in summary
     assert not any(k.endswith(("[m]", "[m/s]", "[N]", "[kg]")) for k in summary)
     _, cfg_path = init_config(path, tmp_path / "r.toml")
     _, cfg, problem = load(path, cfg_path)

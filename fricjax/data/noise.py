@@ -45,7 +45,12 @@ from typing import Literal
 import numpy as np
 from jaxtyping import Float
 
-__all__ = ["NoiseEstimate", "estimate_noise"]
+__all__ = ["FLIP_KAPPA", "NoiseEstimate", "estimate_noise", "reversals"]
+
+#: κ of the near-rest band: a noise-driven sign flip of v outside ``|v| < κ·σ_v`` has
+#: probability 2·(1 − Φ(4)) = 6.3e-5 per sample, less than one flip in a 10 000-sample
+#: record, where each flip inside would put a spike of 2·F_static into the residual.
+FLIP_KAPPA = 4.0
 
 #: Orders of differences tried, lowest first: order 1 still holds the velocity at any
 #: speed that matters, and above 6 the noise gain C(2k, k) (924 at k = 6) amplifies
@@ -181,3 +186,14 @@ def _white(y: Float[np.ndarray, " n"], by_order: dict[int, float]) -> NoiseEstim
             return NoiseEstimate(by_order[k], ses[k], "white", k, math.nan, by_order)
     k_min = min(orders, key=lambda k: by_order[k])
     return NoiseEstimate(by_order[k_min], ses[k_min], "upper_bound", k_min, math.nan, by_order)
+
+
+def reversals(v: Float[np.ndarray, " n"], band: float) -> int:
+    """Velocity reversals [count] of a filtered velocity [m/s]: crossings from above
+    ``+band`` to below ``−band`` or back, ``band`` [m/s] the speed under which noise can
+    flip the sign of v (``FLIP_KAPPA·σ_v``). Counting every sign change instead counts the
+    noise's flips while the body rests or turns slowly (33 "reversals" on a record whose
+    plot shows about 6)."""
+    v = np.asarray(v, dtype=np.float64)
+    side = np.sign(v[np.abs(v) > band])
+    return int(np.sum(side[1:] != side[:-1])) if side.size else 0

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from jaxtyping import Bool, Float
 
-from fricjax.data.noise import NoiseEstimate, estimate_noise
+from fricjax.data.noise import FLIP_KAPPA, NoiseEstimate, estimate_noise
 from fricjax.data.preprocess import noise_gains
 from fricjax.errors import FricjaxError, where
 from fricjax.problem import Problem
@@ -54,10 +54,6 @@ __all__ = ["EXACT_DOF", "FLIP_KAPPA", "Evidence", "NearRest", "near_rest_band", 
 #: ν standing for "exact" (a quantised signal, σ = q/√12): F(k, 10⁶) equals χ²_k/k to
 #: within 1e-3 in every quantile the tests use.
 EXACT_DOF = 1_000_000
-#: κ of the near-rest band: a noise-driven sign flip of v outside ``|v| < κ·σ_v`` has
-#: probability 2·(1 − Φ(4)) = 6.3e-5 per sample, less than one flip in a 10 000-sample
-#: record, where each flip inside would put a spike of 2·F_static into the residual.
-FLIP_KAPPA = 4.0
 
 
 @dataclass(frozen=True)

@@ -38,13 +38,13 @@ def plot_signals(
     units: AxisUnits = LINEAR,
 ) -> Path:
     """Four stacked panels: x [m], v [m/s], a [m/s²], measured force m·a [N] against t [s]
-    (rad, rad/s, rad/s², N·m on a rotary axis, ``units``)."""
+    (rad, rad/s, rad/s², J·α [N·m] on a rotary axis, ``units``)."""
     fig, axes = plt.subplots(4, 1, figsize=(8, 8), sharex=True)
     labels = (
         units.label("position", "x"),
         units.label("velocity", "v"),
         units.label("acceleration", "a"),
-        units.label("force", "m·a"),
+        units.label("force", units.inertial),
     )
     for ax, y, label in zip(axes, (x, v, a, force), labels, strict=True):
         ax.plot(t, y, lw=1)

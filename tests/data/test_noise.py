@@ -79,3 +79,19 @@ def test_a_force_channel_in_newtons():
 def test_too_short_a_signal_is_refused():
     with pytest.raises(ValueError, match="16 samples"):
         estimate_noise(np.zeros(10))
+
+
+def test_reversals_count_the_motion_s_turns_not_the_noise_s_flips() -> None:
+    from fricjax.data.noise import reversals
+
+    rng = np.random.default_rng(8)
+    t = np.arange(4000) / 1000.0
+    sigma_v = 1e-3
+    # three periods of a sine (6 turns), long stops at rest between the strokes where only
+    # noise moves the filtered velocity
+    v = 0.05 * np.sin(2 * np.pi * 0.75 * t) * (np.abs(np.sin(2 * np.pi * 0.75 * t)) > 0.3)
+    noisy = v + rng.normal(0.0, sigma_v, t.size)
+    naive = int(np.sum(np.diff(np.sign(noisy[np.abs(noisy) > 1e-9])) != 0))
+    assert naive > 50  # every sign change counted: the noise's
+    assert reversals(noisy, 4.0 * sigma_v) == 5  # the turns between 6 strokes
+    assert reversals(rng.normal(0.0, sigma_v, t.size), 4.0 * sigma_v) <= 1
