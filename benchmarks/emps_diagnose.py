@@ -152,7 +152,7 @@ def main() -> int:
         errors.append((label, params, _errors(mcfg, recs, params)))
 
     # the authors' asymmetric variant, expressed with the catalogue term (offset 0)
-    from fricjax.diagnose.catalogue import AsymmetricFriction
+    from fricjax.model.effects import AsymmetricFriction
     from fricjax.model.system import Model
 
     asym_model = Model((*cfg.model.terms, AsymmetricFriction()))

@@ -161,7 +161,6 @@ def reference(problem, fit, start: dict[str, float], states, oe, nfev: int):
 
 
 def run_case(path: Path, config: str, nfev: int) -> dict[str, Outcome]:
-    import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.api import load
     from fricjax.diagnose.evidence import near_rest_band, record_noise
     from fricjax.diagnose.judge import Superset, converged, fit_candidates, starts

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import threading
-import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,48 +18,14 @@ from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import check_outputs
 from fricjax.params import check_values
 from fricjax.problem import Problem, build_problem
+from fricjax.programs import enable_compilation_cache as enable_compilation_cache
+from fricjax.validate import read_params
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
     from fricjax.diagnose.stages import StageEvent
     from fricjax.simulation import SimulationReport
-
-
-def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
-    """Keep compiled XLA executables on disk across processes (jax's persistent cache).
-
-    Compilation, not computation, dominates a cold ``fricjax identify`` (the
-    Levenberg-Marquardt polish alone compiles for several seconds); later processes load
-    the executables instead. Directory: ``path``, else ``$FRICJAX_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/fricjax/jax`` (``~/.cache/fricjax/jax``); a few MB per recording and
-    config (jax evicts nothing; delete the folder to reclaim it).
-    ``FRICJAX_COMPILATION_CACHE=0`` turns it off. The cache
-    key is the compiled program itself (data embedded as constants included) plus the jax,
-    XLA and platform versions, so a stale entry cannot be used; an unwritable directory
-    only disables the cache. Its ``programs/`` folder keeps the traced programs as well
-    (:mod:`fricjax.programs`, keyed on the fricjax source, the model structure, the
-    settings and the shapes), so that a later process skips tracing too: most of a warm
-    ``fricjax diagnose`` otherwise. Returns the directory, or None when off.
-    """
-    if os.environ.get("FRICJAX_COMPILATION_CACHE", "1") == "0":
-        return None
-    import jax
-
-    from fricjax.programs import set_store
-
-    default = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fricjax" / "jax"
-    where_to = Path(path or os.environ.get("FRICJAX_CACHE_DIR") or default)
-    try:
-        where_to.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None
-    jax.config.update("jax_compilation_cache_dir", str(where_to))
-    # every program of a run is worth keeping: the small ones add up too
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    set_store(where_to / "programs")
-    return where_to
 
 
 #: The config a command uses without ``--config``: the seed paper's harmonic-drive model,
@@ -229,103 +192,6 @@ def inspect_recording(
         d.t, d.x, d.v, d.a, force, title=f"{rec.name or out.stem}", path=out, units=units
     )
     return summary, fig
-
-
-def read_params(
-    path: str | Path, *, member: int | None = None, recording: Recording | None = None
-) -> dict[str, float]:
-    """Named parameter values from TOML/JSON (``name = value``) or a results file.
-
-    A joint results file (:mod:`fricjax.joint`) gives one recording's parameters: those of
-    ``member`` (1-based, the order the recordings were given), else of the member whose
-    data are ``recording``'s (same sha256); neither is refused in one line, as is a
-    ``member`` given for anything but a joint file."""
-    path = Path(path)
-    if not path.exists():
-        raise FricjaxError(f"{where(path)}: parameter file not found")
-    suffix = path.suffix.lower()
-    try:
-        if suffix in (".h5", ".hdf5"):
-            from fricjax.io.results import read_results
-
-            runs = read_results(path).runs
-            objectives = {str(r.attrs.get("objective", "")) for r in runs}
-            if len(objectives) > 1:
-                raise FricjaxError(
-                    f"{where(path, 'runs')}: mixes objectives ({'; '.join(sorted(objectives))}) "
-                    "whose costs are not comparable; write one objective per file"
-                )
-            best = min(runs, key=lambda r: r.cost)
-            return _member_params(path, best, member, recording)
-        if suffix == ".json":
-            raw: Any = json.loads(path.read_text(encoding="utf-8"))
-        elif suffix == ".toml":
-            raw = tomllib.loads(path.read_text(encoding="utf-8"))
-            raw = raw.get("params", raw)
-        else:
-            raise FricjaxError(f"{where(path)}: parameters must be .toml, .json or results .h5")
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as err:
-        raise FricjaxError(f"{where(path)}: cannot parse ({err})") from None
-    except UnicodeDecodeError as err:
-        raise FricjaxError(f"{where(path)}: not UTF-8 text (byte {err.start})") from None
-    except OSError as err:
-        raise FricjaxError(f"{where(path)}: cannot read ({err.strerror})") from None
-    if member is not None:
-        raise FricjaxError(
-            f"--member: {path} is not a joint results file; --member picks a recording of one"
-        )
-    if not isinstance(raw, dict):
-        raise FricjaxError(
-            f"{where(path)}: top level must be a table of name = value, got "
-            f"{type(raw).__name__} {json.dumps(raw)[:40] if suffix == '.json' else repr(raw)}"
-        )
-    out = {}
-    for key, value in raw.items():
-        if isinstance(value, dict):
-            value = value.get("value", value.get("init"))
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if not number:
-            raise FricjaxError(f"{where(path, key)}: not a number ({value!r})")
-        if not math.isfinite(value):
-            raise FricjaxError(f"{where(path, key)}: not a finite number ({value})")
-        out[key] = float(value)
-    return out
-
-
-def _member_params(
-    path: Path, run: Any, member: int | None, recording: Recording | None
-) -> dict[str, float]:
-    """``run.params``, or for a joint run one member's (see :func:`read_params`)."""
-    from fricjax.joint import is_joint, member_params, members_of
-
-    if not is_joint(run):
-        if member is not None:
-            raise FricjaxError(
-                f"--member: {path} holds a single-recording fit; --member picks a recording of "
-                "a joint one"
-            )
-        return run.params
-    members = members_of(run)
-    n = len(members)
-    names = ", ".join(f"{k + 1} = {m.get('name', '?')}" for k, m in enumerate(members))
-    if member is None and recording is not None:
-        sha = recording.sha256()
-        found = [k for k, m in enumerate(members) if m.get("sha256") == sha]
-        if not found:
-            raise FricjaxError(
-                f"{where(path)}: a joint fit of {n} recordings ({names}) and "
-                f"{recording.path or recording.name} is none of them; give --member K to use "
-                "recording K's parameters"
-            )
-        return member_params(run.params, found[0])
-    if member is None:
-        raise FricjaxError(
-            f"{where(path)}: a joint fit of {n} recordings ({names}), not a single-recording "
-            "result; give --member K where the command takes it, or one recording's results"
-        )
-    if not 1 <= member <= n:
-        raise FricjaxError(f"--member: {member} is not a recording of {path} ({names})")
-    return member_params(run.params, member - 1)
 
 
 def cost_at(
@@ -622,8 +488,8 @@ def _diagnose_settings(cfg: Config, overrides: dict[str, Any] | None) -> tuple[A
 
 
 def diagnose_recording(
-    recording: str | Path,
-    config: str | Path,
+    recording: str | Path | Recording,
+    config: str | Path | Config,
     *,
     out: str | Path,
     validation: str | Path | None = None,
@@ -640,12 +506,14 @@ def diagnose_recording(
     is written, marked interrupted. Never reads ``/truth``: the recording is read through
     :func:`read_recording`, which ignores that group.
     """
-    import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
-    from fricjax.diagnose.run import OUTPUT_FILES, diagnose, write_diagnosis
+    from fricjax.diagnose.report import OUTPUT_FILES, write_diagnosis
+    from fricjax.diagnose.run import diagnose
 
+    source = recording.path or recording.name if isinstance(recording, Recording) else recording
+    config_path = config.source or None if isinstance(config, Config) else config
     check_outputs(
         [Path(out) / name for name in OUTPUT_FILES],
-        {"recording": recording, "--config": config, "--validation": validation},
+        {"recording": source, "--config": config_path, "--validation": validation},
         "--out",
     )
     _, cfg, problem = load(recording, config, mass=mass)
@@ -658,7 +526,7 @@ def diagnose_recording(
         identify_settings=ident,
         settings=settings,
         validation=val,
-        recording=str(recording),
+        recording=str(source),
         on_stage=on_stage,
         stop=stop,
     )
@@ -683,7 +551,6 @@ def diagnose_recordings(
     ``overrides``: ``alpha``, ``max_terms``, ``time_limit`` from the command line (the
     ``[diagnose]`` table's ``alpha``, ``min_delta_bic``, ``max_terms``, ``time_limit``
     otherwise); ``effects``: the catalogue entries to try (default all)."""
-    import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue terms)
     from fricjax.diagnose.across import Budget, diagnose_across, write_across
     from fricjax.joint import JointSettings
 
@@ -750,11 +617,12 @@ def simulate_recording(
         :class:`fricjax.simulation.SimulationReport`.
     """
     from fricjax.model.closed_loop import CascadePD
-    from fricjax.simulation import simulate_against, write_simulation
-    from fricjax.validate import _config_from_results, parse_controller
+    from fricjax.report.simulation import write_simulation
+    from fricjax.simulation import simulate_against
+    from fricjax.validate import config_from_results, parse_controller
 
     if out is not None:
-        from fricjax.simulation import OUTPUT_FILES
+        from fricjax.report.simulation import OUTPUT_FILES
 
         check_outputs(
             [Path(out) / name for name in OUTPUT_FILES],
@@ -780,7 +648,7 @@ def simulate_recording(
             raise FricjaxError(f"{where(results)}: not a results .h5 (use --params for TOML/JSON)")
         named, source = read_params(results, member=member, recording=rec), str(results)
         if config is None:
-            config = _config_from_results(results)
+            config = config_from_results(results)
     elif member is not None:
         raise FricjaxError("--member: picks a recording of a joint --results; none given")
     elif isinstance(params, dict):

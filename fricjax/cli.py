@@ -13,7 +13,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from typer._click.exceptions import NoArgsIsHelpError  # typer vendors click (pinned <0.30)
@@ -21,6 +21,9 @@ from typer.exceptions import Abort, TyperException
 
 from fricjax.diagnose.stages import TIME_LIMIT_S as DIAGNOSE_TIME_LIMIT
 from fricjax.errors import EXIT, FricjaxError, OutputFault
+
+if TYPE_CHECKING:
+    from fricjax.data.recording import Recording
 
 app = typer.Typer(
     add_completion=False,
@@ -149,7 +152,7 @@ def cost(
     )
 
 
-def _warn_scale(recording: Path, config: Path, mass: float | None) -> None:
+def _warn_scale(recording: Path | Recording, config: Path, mass: float | None) -> None:
     """Print a ``warning:`` line on stderr for each implausible unit of the recording."""
     from fricjax.api import scale_warnings
 
@@ -469,7 +472,7 @@ def simulate(
     """Simulate identified parameters from the recording's initial state and compare x, v,
     a and force: RMS error, relative error, fit %; writes OUT/simulation.json, .h5, .png."""
     from fricjax.api import enable_compilation_cache, simulate_recording
-    from fricjax.simulation import format_simulation
+    from fricjax.report.simulation import format_simulation
 
     enable_compilation_cache()
     report = simulate_recording(
@@ -552,6 +555,7 @@ def diagnose(
     """Locate the mismatch, name the physics left out, model it, show the fit improve.
     Ctrl-C stops it within the fit in flight and writes what was judged (exit 3)."""
     from fricjax.api import config_or_default, diagnose_recording, enable_compilation_cache
+    from fricjax.data.recording import read_recording
     from fricjax.report.tables import fmt
 
     if len(recordings) > 1:
@@ -559,8 +563,8 @@ def diagnose(
             recordings, config, out, validation, alpha, max_terms, time_limit, mass, quiet
         )
         return
-    recording = recordings[0]
-    config = config_or_default(recording, config)
+    config = config_or_default(recordings[0], config)
+    recording = read_recording(recordings[0], mass=mass)  # read once: warnings and diagnosis
     _warn_scale(recording, config, mass)
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead

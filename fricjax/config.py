@@ -120,8 +120,6 @@ def _parse_model(table: Any, source: str) -> Model:
     for key in table:
         if key not in ("terms", "axis") and key not in names:
             raise FricjaxError(f"{where(source, f'[model].{key}')}: not a term of this model")
-    if any(name not in TERMS for name in names):
-        import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue's terms)
     terms = []
     for name in names:
         if name not in TERMS:

@@ -68,19 +68,19 @@ from fricjax.problem import Problem, build_problem, stack_trees
 from fricjax.refine import (
     RefineSettings,
     ResidualNoise,
-    _checked,
-    _refine_batch,
+    checked_refine_settings,
     cluster_minima,
+    refine_batch,
     uncertainty_at,
 )
 from fricjax.residual_noise import residual_noises
 from fricjax.search.chains import (
-    _checked_t0,
-    _Control,
-    _device_settings,
-    _fused_program,
-    _setup,
-    _WithAux,
+    Control,
+    WithAux,
+    chain_setup,
+    checked_t0,
+    device_settings,
+    fused_program,
     relative_temperatures,
 )
 from fricjax.search.separable import projected, separate
@@ -171,7 +171,7 @@ def failed(member: Member, reason: str, *, sha256: str = "", shard: int = -1) ->
 
 def _search_cost(problem: Problem, separable: bool) -> eqx.Module:
     """The search's cost ``θ -> (E, θ_full)`` (separable) or ``θ -> (E, None)``."""
-    return separate(problem).cost_and_theta if separable else _WithAux(problem.cost_fn)
+    return separate(problem).cost_and_theta if separable else WithAux(problem.cost_fn)
 
 
 def _search_box(problem: Problem, separable: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -230,13 +230,13 @@ def _search_program(
     lower: Float[Array, "B d"],
     upper: Float[Array, "B d"],
     settings: Any,
-    control: _Control,
+    control: Control,
     n_samples: int,
     n_chains: int,
     n_pad: int,
 ) -> Any:
     def one(cost_fn: Any, lo: Array, hi: Array) -> Any:
-        return _fused_program(
+        return fused_program(
             algorithm, key, cost_fn, None, lo, hi, settings, control, n_samples, n_chains,
             n_pad, True, None,
         )  # fmt: skip
@@ -251,7 +251,7 @@ def _polish_program(
     upper: Float[Array, "B d"],
     settings: RefineSettings,
 ) -> Any:
-    one = lambda r, x0s, lo, hi: _refine_batch(r, x0s, lo, hi, settings)  # noqa: E731
+    one = lambda r, x0s, lo, hi: refine_batch(r, x0s, lo, hi, settings)  # noqa: E731
     return eqx.filter_vmap(one)(residual_fns, starts, lower, upper)
 
 
@@ -301,12 +301,12 @@ def _searched(
     separable = settings.separable
     spec = lanes[0].spec
     lo, hi = _search_box(lanes[0], separable)
-    run = _setup(
+    run = chain_setup(
         prng_key(settings.seed), lo, hi, settings.method, settings.anneal, settings.chains,
         None, None, spec.source,
     )  # fmt: skip
     anneal = run.settings
-    control = _Control(
+    control = Control(
         K=np.float64(anneal.K),
         rel_temps=relative_temperatures(anneal),
         t_min_rel=np.float64(anneal.t_min_rel),
@@ -321,7 +321,7 @@ def _searched(
         stack_trees([_search_cost(p, separable) for p in lanes]),
         np.stack([b[0] for b in boxes]),
         np.stack([b[1] for b in boxes]),
-        _device_settings(anneal),
+        device_settings(anneal),
         control,
         anneal.n_temperature_samples,
         run.n_chains,
@@ -382,7 +382,7 @@ def _fit_shard(
         starts = np.where(safe[:, :, None], starts, ((lower + upper) / 2)[:, None])
         residuals = stack_trees([p.residual_fn for p in lanes])
         polished = jax.device_get(
-            _polish(residuals, starts, lower, upper, _checked(settings.refiner))
+            _polish(residuals, starts, lower, upper, checked_refine_settings(settings.refiner))
         )
         costs = np.where(safe, np.asarray(polished.cost_after), np.inf)
         k = np.argmin(costs, axis=1)
@@ -432,7 +432,7 @@ def _member_fit(
     spec = problem.spec
     sha = problem.checksum
     try:
-        _checked_t0(t0, settings.anneal, spec.source)
+        checked_t0(t0, settings.anneal, spec.source)
         if not np.isfinite(cost):
             raise FricjaxError(f"{member.name}: cost not finite at the best point found")
         unc = uncertainty_at(
@@ -559,7 +559,7 @@ def _fit_shard_on_worker(
     """:func:`fit_shard` in a Dask worker, with jax's persistent compilation cache on
     (:func:`fricjax.api.enable_compilation_cache`): every worker, and a worker restarted
     after a crash, loads the shard's programs instead of compiling them again."""
-    from fricjax.api import enable_compilation_cache
+    from fricjax.programs import enable_compilation_cache
 
     enable_compilation_cache()
     return fit_shard(members, width, settings, number)

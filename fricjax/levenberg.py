@@ -64,7 +64,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from fricjax.refine import Refined, RefineSettings, _from_box, _to_box
+from fricjax.refine import Refined, RefineSettings, from_box, to_box
 
 #: ``θ ↦ (r [m], J [m, D])``, both at θ (box units).
 ValueAndJacobian = Callable[[Float[Array, " D"]], tuple[Float[Array, " m"], Float[Array, "m D"]]]
@@ -130,7 +130,7 @@ def lm_init(pb: LMProblem, x0: Float[Array, " D"]) -> LMState:
     evaluated: the residual's shapes only, so that the loop holds the one call of the
     Jacobian program (each call site compiles the tangent simulation again)."""
     s = pb.settings
-    z = _from_box(x0, pb.lower, pb.upper, s.transform, s.eps_bound)
+    z = from_box(x0, pb.lower, pb.upper, s.transform, s.eps_bound)
     r, jac = jax.eval_shape(pb.value_and_jacobian, x0)
     nan = jnp.asarray(jnp.nan, r.dtype)
     return LMState(
@@ -221,7 +221,7 @@ def lm_step(pb: LMProblem, state: LMState) -> LMState:
         # one call site of the residual for both points: the probe, then the trial
         r_probe, _ = carry
         point = jnp.where(i == 0, state.z + _PROBE * h, state.z + h + 0.5 * accel(r_probe))
-        r_i = pb.value(_to_box(point, pb.lower, pb.upper, s.transform))
+        r_i = pb.value(to_box(point, pb.lower, pb.upper, s.transform))
         return jnp.where(i == 0, r_i, r_probe), r_i
 
     r_probe, r_new = jax.lax.fori_loop(0, 2, probe_then_trial, (r, r))
@@ -241,7 +241,7 @@ def lm_step(pb: LMProblem, state: LMState) -> LMState:
     factor = jnp.where(good & ~bent, _HIGH_CONSTANT, jnp.where(accept & ~bent, 1.0, _LOW_CONSTANT))
 
     def take(st: LMState) -> LMState:
-        x = _to_box(z_new, pb.lower, pb.upper, s.transform)
+        x = to_box(z_new, pb.lower, pb.upper, s.transform)
         r1, jac1 = pb.value_and_jacobian(x)
         slope = jnp.where(pb.free, _slope(z_new, pb.lower, pb.upper, s.transform), 0.0)
         jac_z1 = jac1 * slope[None, :]
@@ -299,7 +299,7 @@ def levenberg_marquardt(
     ``gain_tol``: the Gauss–Newton decrement that counts as converged (module docstring)."""
     pb = LMProblem(value, value_and_jacobian, lower, upper, free, settings, gain_tol)
     state = jax.lax.while_loop(lambda st: ~st.done, lambda st: lm_step(pb, st), lm_init(pb, x0))
-    x = jnp.where(free, _to_box(state.z, lower, upper, settings.transform), x0)
+    x = jnp.where(free, to_box(state.z, lower, upper, settings.transform), x0)
     refined = Refined(
         x=x,
         cost_before=state.cost_start,

@@ -140,7 +140,7 @@ from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
 from fricjax.problem import Problem, needs_input
 from fricjax.programs import stored
-from fricjax.refine import Refined, RefineSettings, _checked, uncertainty_at
+from fricjax.refine import Refined, RefineSettings, checked_refine_settings, uncertainty_at
 from fricjax.search.fast_compile import CLASSIC_EMITTERS
 
 __all__ = [
@@ -856,7 +856,7 @@ def fit_output_error_batch(
         upper,
         held,
         weights,
-        _checked(settings.refine_settings()),
+        checked_refine_settings(settings.refine_settings()),
         settings.gain_tol,
     )
     out, r_opt, jac = jax.device_get((out, r_opt, jac))

@@ -246,6 +246,32 @@ class ParamSpec:
         return replace(self, params=self.params + tuple(extra))
 
 
+# A parameter within this fraction of its search range from a bound is "on the bound":
+# LM's sine transform reaches a bound only asymptotically, 1e-3 of the range is where its
+# gradient has fallen to ~6 % of its interior value.
+BOUND_TOL = 1e-3
+
+
+def on_bound(spec: ParamSpec | None, name: str, value: float) -> str:
+    """``"lower"``/``"upper"`` where ``value`` sits on that bound of ``name``'s search
+    range (within :data:`BOUND_TOL` of it), else ``""``."""
+    if spec is None or name not in spec.names or not spec[name].free:
+        return ""
+    p = spec[name]
+    tol = BOUND_TOL * (p.upper - p.lower)
+    if value <= p.lower + tol:
+        return "lower"
+    if value >= p.upper - tol:
+        return "upper"
+    return ""
+
+
+def at_bounds(spec: ParamSpec, params: dict[str, float]) -> dict[str, str]:
+    """``{name: "lower"|"upper"}`` for each of ``params`` on a bound of its search range: a
+    limit the fit ran into, not a measurement."""
+    return {n: side for n, v in params.items() if (side := on_bound(spec, n, float(v)))}
+
+
 def _check_param(p: Param, source: str) -> None:
     loc = where(source, f"[params].{p.name}")
     for label, value in (("value", p.init), ("lower", p.lower), ("upper", p.upper)):

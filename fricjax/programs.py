@@ -37,6 +37,7 @@ import enum
 import functools
 import hashlib
 import inspect
+import os
 import pickle
 from collections.abc import Callable, Mapping
 from importlib import metadata
@@ -284,3 +285,37 @@ def stored(fn: Callable[P, R], *, compiler_options: dict[str, Any] | None = None
     """``fn`` jitted as ``equinox.filter_jit`` does, its programs stored on disk while a
     store is set (module docstring). Use it for programs whose trace costs seconds."""
     return Stored(fn, compiler_options)
+
+
+def enable_compilation_cache(path: str | Path | None = None) -> Path | None:
+    """Keep compiled XLA executables on disk across processes (jax's persistent cache).
+
+    Compilation, not computation, dominates a cold ``fricjax identify`` (the
+    Levenberg-Marquardt polish alone compiles for several seconds); later processes load
+    the executables instead. Directory: ``path``, else ``$FRICJAX_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/fricjax/jax`` (``~/.cache/fricjax/jax``); a few MB per recording and
+    config (jax evicts nothing; delete the folder to reclaim it).
+    ``FRICJAX_COMPILATION_CACHE=0`` turns it off. The cache
+    key is the compiled program itself (data embedded as constants included) plus the jax,
+    XLA and platform versions, so a stale entry cannot be used; an unwritable directory
+    only disables the cache. Its ``programs/`` folder keeps the traced programs as well
+    (:mod:`fricjax.programs`, keyed on the fricjax source, the model structure, the
+    settings and the shapes), so that a later process skips tracing too: most of a warm
+    ``fricjax diagnose`` otherwise. Returns the directory, or None when off.
+    """
+    if os.environ.get("FRICJAX_COMPILATION_CACHE", "1") == "0":
+        return None
+    import jax
+
+    default = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "fricjax" / "jax"
+    where_to = Path(path or os.environ.get("FRICJAX_CACHE_DIR") or default)
+    try:
+        where_to.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(where_to))
+    # every program of a run is worth keeping: the small ones add up too
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    set_store(where_to / "programs")
+    return where_to

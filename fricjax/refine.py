@@ -149,7 +149,7 @@ class Refined(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
-def _to_box(
+def to_box(
     z: Float[Array, " d"], lower: Float[Array, " d"], upper: Float[Array, " d"], transform: str
 ) -> Float[Array, " d"]:
     if transform == "sine":
@@ -159,7 +159,7 @@ def _to_box(
     return z
 
 
-def _from_box(
+def from_box(
     x: Float[Array, " d"],
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
@@ -199,12 +199,12 @@ def _refine_one(
     t = settings.transform
 
     def fn(z: Float[Array, " d"], args: None) -> Float[Array, " n"]:
-        return _residual(residual_fn, _to_box(z, lower, upper, t))
+        return _residual(residual_fn, to_box(z, lower, upper, t))
 
-    z0 = _from_box(x0, lower, upper, t, settings.eps_bound)
+    z0 = from_box(x0, lower, upper, t, settings.eps_bound)
     solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol)
     sol = optx.least_squares(fn, solver, z0, max_steps=settings.max_steps, throw=False)
-    x_new = _to_box(sol.value, lower, upper, t)
+    x_new = to_box(sol.value, lower, upper, t)
     if t == "none":
         x_new = jnp.clip(x_new, lower, upper)
     # both costs at one call site of the residual: it compiles once, not twice
@@ -228,7 +228,7 @@ def _refine_one(
     )
 
 
-def _refine_batch(
+def refine_batch(
     residual_fn: ResidualFn,
     x0s: Float[Array, "K d"],
     lower: Float[Array, " d"],
@@ -243,11 +243,11 @@ def _refine_batch(
 # data) as traced, so repeated calls with the same function object or new data of the same
 # shape reuse one compilation.
 _refine_one_jit = stored(_refine_one)
-_refine_batch_jit = stored(_refine_batch)
+_refine_batch_jit = stored(refine_batch)
 # For a polish that runs once per process (a cold CLI run), where compiling the LM loop
 # costs seconds and running it tens of milliseconds (fricjax.search.fast_compile).
 _refine_one_fast = stored(_refine_one, compiler_options=FAST_COMPILE)
-_refine_batch_fast = stored(_refine_batch, compiler_options=FAST_COMPILE)
+_refine_batch_fast = stored(refine_batch, compiler_options=FAST_COMPILE)
 
 
 def _check_box(
@@ -285,7 +285,7 @@ def _check_box(
     return x, lo, hi
 
 
-def _checked(settings: RefineSettings) -> RefineSettings:
+def checked_refine_settings(settings: RefineSettings) -> RefineSettings:
     # Re-validated and rebuilt from Python scalars: filter_jit would trace array-valued
     # settings, and max_steps / transform must be static.
     if not isinstance(settings, RefineSettings):
@@ -336,7 +336,7 @@ def refine(
         :class:`Refined` of jax arrays (x [d], scalars).
     """
     x, lo, hi = _check_box(x0, lower, upper, batched=False)
-    settings = _checked(settings)
+    settings = checked_refine_settings(settings)
     # numpy arguments: the call transfers them (jnp.asarray would compile a copy per shape)
     run = program or (_refine_one_fast if fast_compile else _refine_one_jit)
     return run(residual_fn, x, lo, hi, settings)
@@ -357,7 +357,7 @@ def compile_refine(
     without Python's lock, on the second core (a cold ``fricjax identify`` overlaps the
     polish's compilation with the search's)."""
     x, lo, hi = _check_box(x0, lower, upper, batched=False)
-    settings = _checked(settings)
+    settings = checked_refine_settings(settings)
     jitted = _refine_one_fast if fast_compile else _refine_one_jit
     return jitted.compiled(residual_fn, x, lo, hi, settings)
 
@@ -381,7 +381,7 @@ def refine_many(
         :class:`Refined` with a leading axis K on every field (x [K, d], others [K]).
     """
     x, lo, hi = _check_box(x0s, lower, upper, batched=True)
-    settings = _checked(settings)
+    settings = checked_refine_settings(settings)
     run = _refine_batch_fast if fast_compile else _refine_batch_jit
     return run(residual_fn, x, lo, hi, settings)
 

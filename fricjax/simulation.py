@@ -1,6 +1,6 @@
 """``fricjax simulate``: run an identified model forward and compare it with the recording.
 
-The model is simulated (:func:`fricjax.validate.simulate_model`: stiction-aware RK4,
+The model is simulated (:func:`simulate_model`: stiction-aware RK4,
 :mod:`fricjax.model.simulate`; closed loop through :mod:`fricjax.model.closed_loop` when a
 controller is given and the recording has a reference ``/r``, else open loop from the
 recorded input or, for a harmonic drive, from the drive function of t) from the
@@ -30,32 +30,36 @@ and for each, with ``e = ŷ − y`` over the m samples:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import h5py
+import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from fricjax.config import Config
 from fricjax.data.recording import MAX_MAGNITUDE, Recording
 from fricjax.errors import FricjaxError, where
-from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.limits import check_substeps
-from fricjax.model.closed_loop import CascadePD
-from fricjax.params import check_known
-from fricjax.units import LINEAR
-from fricjax.validate import _named, _problem, simulate_model
+from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
+from fricjax.model.simulate import simulate
+from fricjax.model.system import MASS
+from fricjax.params import check_known, check_value
+from fricjax.problem import Problem, bind_input, build_problem
+from fricjax.units import LINEAR, AxisUnits
 
 __all__ = [
     "SIGNAL_UNITS",
     "SignalMetrics",
     "SimulationReport",
-    "format_simulation",
+    "param_values",
+    "problem_for",
     "signal_metrics",
     "simulate_against",
-    "write_simulation",
+    "simulate_model",
+    "trx",
 ]
 
 FORMAT = "fricjax-simulation-v1"
@@ -83,7 +87,7 @@ class SimulationReport(NamedTuple):
     "closed-loop"; substeps: RK4 sub-steps per sample; start: first compared sample k0;
     t [m]: compared sample times [s]; recorded, simulated: signal name → [m] arrays (units
     in :data:`SIGNAL_UNITS`); metrics: signal name → :class:`SignalMetrics`; files: what
-    was written (json, h5, png) → path.
+    was written (json, h5, png) → path; axis: the axis' units and symbols.
     """
 
     recording: str
@@ -96,6 +100,7 @@ class SimulationReport(NamedTuple):
     simulated: dict[str, np.ndarray]
     metrics: dict[str, SignalMetrics]
     files: dict[str, Path]
+    axis: AxisUnits = LINEAR
 
     def residual(self, name: str) -> np.ndarray:
         """``simulated − recorded`` of signal ``name`` [its unit], shape [m]."""
@@ -113,6 +118,84 @@ class SimulationReport(NamedTuple):
             "params": self.params,
             "metrics": {k: m._asdict() for k, m in self.metrics.items()},
         }
+
+
+# -- the one simulation of a model against a recording ---------------------------------
+
+
+def param_values(problem: Problem, params: Mapping[str, float], source: str) -> dict[str, Array]:
+    """Every model parameter as a JAX scalar: values from ``params``, else the config's."""
+    out = {}
+    for p in problem.spec.params:
+        if p.name in params:
+            value = check_value(p, params[p.name], where(source, p.name))
+            out[p.name] = jnp.asarray(value, dtype=jnp.float64)
+        elif p.free:
+            raise FricjaxError(f"{where(source, p.name)}: missing (free parameter of the model)")
+        else:
+            out[p.name] = jnp.asarray(p.init, dtype=jnp.float64)
+    return out
+
+
+def problem_for(
+    rec: Recording, cfg: Config, params: Mapping[str, float], source: str = "params"
+) -> Problem:
+    """The problem of ``rec`` and ``cfg``, the mass taken from ``params`` where neither
+    the config nor the recording gives it."""
+    if not cfg.mass_in_spec and rec.mass is None and "mass" in params:
+        # the mass comes from the parameters, so a bad one is blamed on them
+        mass = check_value(MASS, params["mass"], where(source, "mass"))
+        rec = replace(rec, mass=mass)
+    return build_problem(rec, cfg)
+
+
+def trx(rec: Recording) -> tuple[np.ndarray, ...]:
+    """(t, x, r, u) of ``rec``: the arguments of :func:`input_disturbance`."""
+    return rec.t, rec.x, rec.r, rec.u
+
+
+def simulate_model(
+    rec: Recording,
+    problem: Problem,
+    p: Mapping[str, Array],
+    controller: CascadePD | None,
+    *,
+    substeps: int = 4,
+    start: int = 0,
+    stop: int | None = None,
+    v0: float | None = None,
+) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Simulate ``problem.model`` at ``p`` over samples ``start:stop`` of ``rec``.
+
+    Closed loop (:func:`simulate_closed_loop`, reference ``/r[start:stop]``, external input
+    :func:`input_disturbance` of the whole record) when ``controller`` is given and the
+    record has ``/r``; else open loop from the recorded input. Initial state: ``x[start]``
+    [m] and ``v0`` [m/s] (default: the first difference ``(x[start+1] − x[start])/dt``).
+
+    Returns:
+        (closed, x [m], v [m/s], a [m/s²], u) over the m samples, numpy; ``u`` [unit of /u]
+        is the simulated controller output in closed loop, None in open loop.
+    """
+    rec = bind_input(rec, problem.model)
+    keep = slice(start, stop)
+    t = jnp.asarray(rec.t[keep])
+    x0 = float(rec.x[start])
+    if v0 is None:
+        v0 = float((rec.x[start + 1] - rec.x[start]) / rec.dt)
+    u = None if rec.u is None else jnp.asarray(rec.u[keep])
+    closed = controller is not None and rec.r is not None
+    if closed:
+        w = None
+        if rec.u is not None:
+            w = jnp.asarray(input_disturbance(controller, *trx(rec))[keep])
+        traj = simulate_closed_loop(
+            problem.model, p, t, jnp.asarray(rec.r[keep]), x0, v0, controller, w, substeps=substeps
+        )
+        xs, vs, acc, us = (np.asarray(y) for y in traj)
+        return True, xs, vs, acc, us
+    traj = simulate(problem.model, p, t, x0, v0, u, substeps=substeps)
+    xs, vs, acc = (np.asarray(y) for y in traj)
+    return False, xs, vs, acc, None
 
 
 def signal_metrics(simulated: np.ndarray, recorded: np.ndarray, unit: str = "") -> SignalMetrics:
@@ -153,9 +236,9 @@ def simulate_against(
             f"{where(src, '/r')}: missing (closed-loop simulation with a controller needs "
             "the reference position)"
         )
-    problem = _problem(rec, cfg, params, source)
+    problem = problem_for(rec, cfg, params, source)
     check_known(params, problem.spec.names, source)
-    p = _named(problem, params, source)
+    p = param_values(problem, params, source)
     trim = problem.preprocess.trim if problem.preprocess is not None else 0
     m = problem.n
     closed, xs, vs, acc, us = simulate_model(
@@ -200,65 +283,5 @@ def simulate_against(
         simulated=simulated,
         metrics=metrics,
         files={},
+        axis=cfg.axis,
     )
-
-
-#: What :func:`write_simulation` writes into its folder.
-OUTPUT_FILES = ("simulation.json", "simulation.h5", "simulation.png")
-
-
-def write_simulation(report: SimulationReport, out: str | Path) -> SimulationReport:
-    """Write ``out/simulation.json`` (metrics), ``out/simulation.h5`` (series) and
-    ``out/simulation.png`` (figure), each atomically; returns the report with ``files``.
-
-    HDF5 layout: ``/t`` [m] (s); ``/recorded/<signal>``, ``/simulated/<signal>``,
-    ``/residual/<signal>`` (simulated − recorded) [m] with a ``unit`` attribute each; root
-    attrs ``format``, ``recording``, ``mode``, ``substeps``, ``start_sample``, ``params``
-    and ``metrics`` (JSON text).
-    """
-    from fricjax.report.simulation_plots import plot_simulation
-
-    out = make_folder(out)
-    meta = report.as_dict()
-    json_name, h5_name, png_name = OUTPUT_FILES
-    json_path = write_text_atomic(out / json_name, json.dumps(meta, indent=2) + "\n")
-
-    def fill(f: h5py.File) -> None:
-        f.attrs["format"] = FORMAT
-        f.attrs["recording"] = report.recording
-        f.attrs["mode"] = report.mode
-        f.attrs["substeps"] = report.substeps
-        f.attrs["start_sample"] = report.start
-        f.attrs["params"] = json.dumps(report.params)
-        f.attrs["metrics"] = json.dumps(meta["metrics"])
-        ds = f.create_dataset("t", data=report.t)
-        ds.attrs["unit"] = "s"
-        for group, series in (
-            ("recorded", report.recorded),
-            ("simulated", report.simulated),
-            ("residual", {k: report.residual(k) for k in report.recorded}),
-        ):
-            g = f.create_group(group)
-            for name, y in series.items():
-                ds = g.create_dataset(name, data=np.asarray(y, dtype=np.float64))
-                ds.attrs["unit"] = report.metrics[name].unit
-
-    h5_path = write_hdf5_atomic(out / h5_name, fill)
-    png_path = plot_simulation(report, out / png_name)
-    return report._replace(files={"json": json_path, "h5": h5_path, "png": png_path})
-
-
-def format_simulation(report: SimulationReport) -> str:
-    """Plain-text table: one row per signal (RMS error, relative error, fit)."""
-    from fricjax.report.tables import format_table
-
-    rows = [
-        (name, f"{m.rms:.4g} {m.unit}", f"{m.relative:.4g} %", f"{m.fit:.2f} %")
-        for name, m in report.metrics.items()
-    ]
-    head = (
-        f"simulation ({report.mode}, {report.substeps} sub-steps, samples "
-        f"{report.start}..{report.start + report.t.shape[0] - 1}) against {report.recording}"
-    )
-    table = format_table(rows, ("signal", "RMS error", "relative error", "fit"))
-    return f"{head}\n{table}"

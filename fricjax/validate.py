@@ -16,10 +16,11 @@ does with every column of its observation matrix. Reported over the m kept sampl
     relative error  ‖D r‖ / ‖D τ‖ [-]     error norm ‖D r‖ [N]
     error std       std(D r) [N]          EMS  mean((D r)²) [N²]   (= identify's EMS at q = 1)
 
-Simulation error: the model is simulated and compared with the record,
-``100·‖y_sim − y‖/‖y‖`` [%] for y = position x, velocity v and acceleration a (v, a of the
-record from the configured preprocessing; the trimmed ends are left out) and, in closed
-loop, the actuation force g·u. A rig with a pure integrator in the plant runs in closed
+Simulation error: the model is simulated and compared with the record exactly as
+``fricjax simulate`` does (:func:`fricjax.simulation.simulate_against`: from the first kept
+sample, with the preprocessed velocity there, the trimmed ends left out), reported as
+``100·‖y_sim − y‖/‖y‖`` [%] for y = position x, velocity v and acceleration a and, in
+closed loop, the actuation force g·u. A rig with a pure integrator in the plant runs in closed
 loop; simulated open loop from the recorded input it drifts (every force error integrates
 twice), so a recording with a reference ``/r`` and a given controller is re-simulated in
 closed loop (:mod:`fricjax.model.closed_loop`) with the recorded input not explained by the
@@ -34,9 +35,9 @@ Vandanjon 2013), for comparison with equation-error identification.
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from collections.abc import Mapping
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -53,10 +54,9 @@ from fricjax.io.atomic import check_outputs, write_text_atomic
 from fricjax.limits import check_decimation
 from fricjax.model.closed_loop import CascadePD, input_disturbance, simulate_closed_loop
 from fricjax.model.simulate import simulate
-from fricjax.model.system import MASS
-from fricjax.params import check_value
-from fricjax.problem import Problem, bind_input, build_problem, needs_input
+from fricjax.problem import needs_input
 from fricjax.refine import RefineSettings, refine, uncertainty
+from fricjax.simulation import param_values, problem_for, simulate_against, trx
 
 __all__ = [
     "EquationMetrics",
@@ -69,7 +69,6 @@ __all__ = [
     "initial_state",
     "open_loop_rmse",
     "parse_controller",
-    "simulate_model",
     "simulation_error",
     "simulation_rmse",
     "validate_model",
@@ -128,34 +127,6 @@ class Validation(NamedTuple):
 # ---------------------------------------------------------------------------- helpers
 
 
-def _named(problem: Problem, params: Mapping[str, float], source: str) -> dict[str, Array]:
-    """Every model parameter as a JAX scalar: values from ``params``, else the config's."""
-    out = {}
-    for p in problem.spec.params:
-        if p.name in params:
-            value = check_value(p, params[p.name], where(source, p.name))
-            out[p.name] = jnp.asarray(value, dtype=jnp.float64)
-        elif p.free:
-            raise FricjaxError(f"{where(source, p.name)}: missing (free parameter of the model)")
-        else:
-            out[p.name] = jnp.asarray(p.init, dtype=jnp.float64)
-    return out
-
-
-def _problem(
-    rec: Recording, cfg: Config, params: Mapping[str, float], source: str = "params"
-) -> Problem:
-    if not cfg.mass_in_spec and rec.mass is None and "mass" in params:
-        # the mass comes from the parameters, so a bad one is blamed on them
-        mass = check_value(MASS, params["mass"], where(source, "mass"))
-        rec = replace(rec, mass=mass)
-    return build_problem(rec, cfg)
-
-
-def _rel(sim: np.ndarray, meas: np.ndarray) -> float:
-    return float(100.0 * np.linalg.norm(sim - meas) / np.linalg.norm(meas))
-
-
 # ---------------------------------------------------------------------------- metrics
 
 
@@ -169,9 +140,9 @@ def equation_error(
 ) -> EquationMetrics:
     """IDIM equation-error metrics of ``params`` on ``rec`` (module docstring)."""
     q = check_factor(decimate_by, "validate")
-    problem = _problem(rec, cfg, params, source)
+    problem = problem_for(rec, cfg, params, source)
     check_decimation(q, problem.n, "validate")
-    p = _named(problem, params, source)
+    p = param_values(problem, params, source)
     sig = problem.signals
     a = jnp.asarray(problem.a)
     r = problem.model.residual(p, sig, a)
@@ -204,76 +175,22 @@ def simulation_error(
     substeps: int = 4,
     source: str = "params",
 ) -> SimulationMetrics:
-    """Simulate ``params`` over ``rec`` and compare (module docstring).
-
-    Closed loop when ``rec`` has a reference ``/r`` and ``controller`` is given; the body
-    starts at the first recorded position with the first-difference velocity.
-    """
-    problem = _problem(rec, cfg, params, source)
-    p = _named(problem, params, source)
-    closed, xs, vs, acc, us = simulate_model(rec, problem, p, controller, substeps=substeps)
-    trim = problem.preprocess.trim if problem.preprocess is not None else 0
-    keep = slice(trim, rec.n - trim)
-    force = None
-    if closed and rec.u is not None:
-        gain = float(p["gain"]) if "gain" in p else 1.0
-        force = _rel(gain * us[keep], gain * np.asarray(rec.u)[keep])
-    return SimulationMetrics(
-        mode="closed-loop" if closed else "open-loop",
-        position=_rel(xs[keep], np.asarray(rec.x)[keep]),
-        velocity=_rel(vs[keep], problem.v),
-        acceleration=_rel(acc[keep], problem.a),
-        force=force,
-        n=int(problem.n),
+    """The relative errors of :func:`fricjax.simulation.simulate_against`: the same
+    simulation and comparison as ``fricjax simulate`` (from the first kept sample, with the
+    preprocessed velocity there, over the untrimmed samples), so the two commands report
+    the same position error for the same model and recording."""
+    report = simulate_against(
+        rec, cfg, params, controller=controller, substeps=substeps, source=source
     )
-
-
-def _trx(rec: Recording) -> tuple[np.ndarray, ...]:
-    return rec.t, rec.x, rec.r, rec.u
-
-
-def simulate_model(
-    rec: Recording,
-    problem: Problem,
-    p: Mapping[str, Array],
-    controller: CascadePD | None,
-    *,
-    substeps: int = 4,
-    start: int = 0,
-    stop: int | None = None,
-    v0: float | None = None,
-) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """Simulate ``problem.model`` at ``p`` over samples ``start:stop`` of ``rec``.
-
-    Closed loop (:func:`simulate_closed_loop`, reference ``/r[start:stop]``, external input
-    :func:`input_disturbance` of the whole record) when ``controller`` is given and the
-    record has ``/r``; else open loop from the recorded input. Initial state: ``x[start]``
-    [m] and ``v0`` [m/s] (default: the first difference ``(x[start+1] − x[start])/dt``).
-
-    Returns:
-        (closed, x [m], v [m/s], a [m/s²], u) over the m samples, numpy; ``u`` [unit of /u]
-        is the simulated controller output in closed loop, None in open loop.
-    """
-    rec = bind_input(rec, problem.model)
-    keep = slice(start, stop)
-    t = jnp.asarray(rec.t[keep])
-    x0 = float(rec.x[start])
-    if v0 is None:
-        v0 = float((rec.x[start + 1] - rec.x[start]) / rec.dt)
-    u = None if rec.u is None else jnp.asarray(rec.u[keep])
-    closed = controller is not None and rec.r is not None
-    if closed:
-        w = None
-        if rec.u is not None:
-            w = jnp.asarray(input_disturbance(controller, *_trx(rec))[keep])
-        traj = simulate_closed_loop(
-            problem.model, p, t, jnp.asarray(rec.r[keep]), x0, v0, controller, w, substeps=substeps
-        )
-        xs, vs, acc, us = (np.asarray(y) for y in traj)
-        return True, xs, vs, acc, us
-    traj = simulate(problem.model, p, t, x0, v0, u, substeps=substeps)
-    xs, vs, acc = (np.asarray(y) for y in traj)
-    return False, xs, vs, acc, None
+    m = report.metrics
+    return SimulationMetrics(
+        mode=report.mode,
+        position=m["x"].relative,
+        velocity=m["v"].relative,
+        acceleration=m["a"].relative,
+        force=m["actuation"].relative if "actuation" in m else None,
+        n=int(report.t.shape[0]),
+    )
 
 
 #: Samples of the output a benchmark simulation may use to set its initial state; scored
@@ -332,8 +249,8 @@ def open_loop_rmse(
         raise FricjaxError(
             f"{where(rec.name or None, '/u')}: an open-loop simulation needs a recorded input"
         )
-    problem = _problem(rec, cfg, params, source)
-    p = _named(problem, params, source)
+    problem = problem_for(rec, cfg, params, source)
+    p = param_values(problem, params, source)
     x0, v0 = initial_state(rec.t, rec.x, n_init)
     traj = simulate(
         problem.model, p, jnp.asarray(rec.t), x0, v0, jnp.asarray(rec.u), substeps=substeps
@@ -392,7 +309,7 @@ def parse_controller(text: str | None) -> CascadePD | None:
     return CascadePD(**values)
 
 
-def _config_from_results(path: Path) -> Config:
+def config_from_results(path: Path) -> Config:
     from fricjax.io.results import read_results
 
     text = str(read_results(path).attrs.get("config", ""))
@@ -403,6 +320,103 @@ def _config_from_results(path: Path) -> Config:
     except tomllib.TOMLDecodeError as err:
         raise FricjaxError(f"{where(path, 'attr config')}: invalid TOML ({err})") from None
     return parse_config(raw, source=f"{path}: attr config", text=text)
+
+
+def read_params(
+    path: str | Path, *, member: int | None = None, recording: Recording | None = None
+) -> dict[str, float]:
+    """Named parameter values from TOML/JSON (``name = value``) or a results file.
+
+    A joint results file (:mod:`fricjax.joint`) gives one recording's parameters: those of
+    ``member`` (1-based, the order the recordings were given), else of the member whose
+    data are ``recording``'s (same sha256); neither is refused in one line, as is a
+    ``member`` given for anything but a joint file."""
+    path = Path(path)
+    if not path.exists():
+        raise FricjaxError(f"{where(path)}: parameter file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".h5", ".hdf5"):
+            from fricjax.io.results import read_results
+
+            runs = read_results(path).runs
+            objectives = {str(r.attrs.get("objective", "")) for r in runs}
+            if len(objectives) > 1:
+                raise FricjaxError(
+                    f"{where(path, 'runs')}: mixes objectives ({'; '.join(sorted(objectives))}) "
+                    "whose costs are not comparable; write one objective per file"
+                )
+            best = min(runs, key=lambda r: r.cost)
+            return _member_params(path, best, member, recording)
+        if suffix == ".json":
+            raw: Any = json.loads(path.read_text(encoding="utf-8"))
+        elif suffix == ".toml":
+            raw = tomllib.loads(path.read_text(encoding="utf-8"))
+            raw = raw.get("params", raw)
+        else:
+            raise FricjaxError(f"{where(path)}: parameters must be .toml, .json or results .h5")
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as err:
+        raise FricjaxError(f"{where(path)}: cannot parse ({err})") from None
+    except UnicodeDecodeError as err:
+        raise FricjaxError(f"{where(path)}: not UTF-8 text (byte {err.start})") from None
+    except OSError as err:
+        raise FricjaxError(f"{where(path)}: cannot read ({err.strerror})") from None
+    if member is not None:
+        raise FricjaxError(
+            f"--member: {path} is not a joint results file; --member picks a recording of one"
+        )
+    if not isinstance(raw, dict):
+        raise FricjaxError(
+            f"{where(path)}: top level must be a table of name = value, got "
+            f"{type(raw).__name__} {json.dumps(raw)[:40] if suffix == '.json' else repr(raw)}"
+        )
+    out = {}
+    for key, value in raw.items():
+        if isinstance(value, dict):
+            value = value.get("value", value.get("init"))
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number:
+            raise FricjaxError(f"{where(path, key)}: not a number ({value!r})")
+        if not math.isfinite(value):
+            raise FricjaxError(f"{where(path, key)}: not a finite number ({value})")
+        out[key] = float(value)
+    return out
+
+
+def _member_params(
+    path: Path, run: Any, member: int | None, recording: Recording | None
+) -> dict[str, float]:
+    """``run.params``, or for a joint run one member's (see :func:`read_params`)."""
+    from fricjax.joint import is_joint, member_params, members_of
+
+    if not is_joint(run):
+        if member is not None:
+            raise FricjaxError(
+                f"--member: {path} holds a single-recording fit; --member picks a recording of "
+                "a joint one"
+            )
+        return run.params
+    members = members_of(run)
+    n = len(members)
+    names = ", ".join(f"{k + 1} = {m.get('name', '?')}" for k, m in enumerate(members))
+    if member is None and recording is not None:
+        sha = recording.sha256()
+        found = [k for k, m in enumerate(members) if m.get("sha256") == sha]
+        if not found:
+            raise FricjaxError(
+                f"{where(path)}: a joint fit of {n} recordings ({names}) and "
+                f"{recording.path or recording.name} is none of them; give --member K to use "
+                "recording K's parameters"
+            )
+        return member_params(run.params, found[0])
+    if member is None:
+        raise FricjaxError(
+            f"{where(path)}: a joint fit of {n} recordings ({names}), not a single-recording "
+            "result; give --member K where the command takes it, or one recording's results"
+        )
+    if not 1 <= member <= n:
+        raise FricjaxError(f"--member: {member} is not a recording of {path} ({names})")
+    return member_params(run.params, member - 1)
 
 
 def validate_recording(
@@ -421,9 +435,7 @@ def validate_recording(
     TOML/JSON ``name = value``), config from ``config`` or the one stored in the results
     file; optional JSON report ``out`` (written atomically). A joint results file gives
     the parameters of recording ``member`` (1-based), by default of the member that is
-    ``recording`` (same data; :func:`fricjax.api.read_params`)."""
-    from fricjax.api import read_params
-
+    ``recording`` (same data; :func:`read_params`)."""
     if out is not None:
         inputs = {"recording": recording, "--results": results, "--config": config}
         check_outputs([Path(out)], inputs, "--out")
@@ -433,7 +445,7 @@ def validate_recording(
     if config is not None:
         cfg = load_config(config)
     elif results.suffix.lower() in (".h5", ".hdf5"):
-        cfg = _config_from_results(results)
+        cfg = config_from_results(results)
     else:
         raise FricjaxError(f"{where(results)}: holds no config; give --config")
     report = validate_model(
@@ -520,11 +532,11 @@ def fit_simulation_error(
         raise FricjaxError(f"{where(src, '/r')}: missing (closed-loop fit needs the reference)")
     if rec.u is None or not needs_input(cfg.model):
         raise FricjaxError(f"{where(src, '/u')}: closed-loop fit needs a recorded input model")
-    problem = _problem(rec, cfg, start)
+    problem = problem_for(rec, cfg, start)
     spec = problem.spec
     trim = problem.preprocess.trim if problem.preprocess is not None else 0
     t, r, u = jnp.asarray(rec.t), jnp.asarray(rec.r), jnp.asarray(rec.u)
-    w = jnp.asarray(input_disturbance(controller, *_trx(rec)))
+    w = jnp.asarray(input_disturbance(controller, *trx(rec)))
     x0 = float(rec.x[0])
     v0 = float((rec.x[1] - rec.x[0]) / rec.dt)
     model = problem.model

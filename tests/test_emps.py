@@ -149,7 +149,7 @@ def test_the_catalogue_asymmetry_reproduces_the_authors_variant(recs, cfg, run):
     """base + ``asymmetric_friction`` identified on DATA_EMPS (same decimated recipe) gives
     the authors' Fv±, Fc± within 0.3 σ (the offset and dFc are one constant: Fc± take it),
     and lowers the relative error on both files as the authors' model does."""
-    from fricjax.diagnose.catalogue import AsymmetricFriction
+    from fricjax.model.effects import AsymmetricFriction
 
     acfg = _with_terms(cfg, AsymmetricFriction())
     problem = build_problem(recs["estimation"], acfg)

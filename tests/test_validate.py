@@ -65,13 +65,16 @@ def closed_loop_rec(cfg) -> Recording:
 def test_closed_loop_resimulation_reproduces_the_record_at_the_truth(cfg, closed_loop_rec):
     s = simulation_error(closed_loop_rec, cfg, TRUTH, controller=EMPS_CONTROLLER)
     assert s.mode == "closed-loop" and s.n == N - 2 * 49
-    assert s.position < 1e-9 and s.force < 1e-7  # [%]: the same loop, the same input w
+    # [%]: the same loop and input w; the simulation starts at the first kept sample with
+    # the preprocessed velocity there (as `fricjax simulate` does), whose filter error is all
+    # that separates it from the record
+    assert s.position < 1e-3 and s.force < 0.2
     # v and a of the record come from the filter, the simulated ones are exact
     assert s.velocity < 0.5 and s.acceleration < 10.0
     off = simulation_error(
         closed_loop_rec, cfg, {**TRUTH, "Fv": 1.1 * TRUTH["Fv"]}, controller=EMPS_CONTROLLER
     )
-    assert off.force > 100 * s.force + 0.1  # a 10 % viscous error shows in the force
+    assert off.force > 10 * s.force + 0.1  # a 10 % viscous error shows in the force
     assert off.position < 0.01  # but hardly in the position: the loop absorbs it
 
 

@@ -28,8 +28,8 @@ from fricjax.data.recording import (
     MASS_FLAG,
     MAX_STEP_JITTER,
     Recording,
-    _check_mass,
-    _validate,
+    check_mass,
+    validate_arrays,
 )
 from fricjax.errors import FricjaxError, where
 
@@ -88,7 +88,7 @@ def import_mat(
         if key not in mapping:
             raise FricjaxError(f"{where(path, f'mapping {key!r}')}: missing (t and x are needed)")
     if mass is not None:  # a MAT file holds no mass: a bad one is the caller's flag
-        mass = _check_mass(mass, MASS_FLAG)
+        mass = check_mass(mass, MASS_FLAG)
     if not path.is_file():
         raise FricjaxError(f"{where(path)}: no such file")
     if path.stat().st_size == 0:
@@ -121,7 +121,7 @@ def import_mat(
         path=str(path),
     )
     # Everything but uniformity first, so the grid is built only on finite, increasing t.
-    _validate(rec, min_samples=16, labels=labels, check_uniform=False)
+    validate_arrays(rec, min_samples=16, labels=labels, check_uniform=False)
 
     t = rec.t
     n = rec.n
@@ -131,7 +131,7 @@ def import_mat(
     mapped = ", ".join(f"{k} = {v!r}" for k, v in mapping.items())
     if dt is None and jitter < MAX_STEP_JITTER:
         notes = f"imported from {path.name} ({mapped}); time base uniform, not resampled"
-        return _validate(
+        return validate_arrays(
             replace(rec, notes=notes), min_samples=16, labels=labels, check_uniform=True
         )
 
@@ -154,7 +154,7 @@ def import_mat(
         f"step jitter was {jitter:.3g}); {', '.join(moved)} linearly interpolated onto it"
     )
     out = replace(rec, t=grid, notes=notes, **moved)
-    return _validate(out, min_samples=16, labels=labels, check_uniform=True)
+    return validate_arrays(out, min_samples=16, labels=labels, check_uniform=True)
 
 
 def _vector(path: Path, label: str, value: object) -> np.ndarray:

@@ -244,10 +244,10 @@ def validate(rec: Recording, *, min_samples: int = 16) -> Recording:
     Raises:
         FricjaxError: one line naming the file (``rec.path``), the field and the defect.
     """
-    return _validate(rec, min_samples=min_samples, labels=None, check_uniform=True)
+    return validate_arrays(rec, min_samples=min_samples, labels=None, check_uniform=True)
 
 
-def _validate(
+def validate_arrays(
     rec: Recording,
     *,
     min_samples: int,
@@ -311,7 +311,7 @@ def _validate(
                 "fricjax.data.importers.import_mat"
             )
     if rec.mass is not None:
-        _check_mass(rec.mass, name("mass"))
+        check_mass(rec.mass, name("mass"))
     if rec.axis not in ("", "linear", "rotary"):
         raise FricjaxError(
             f"{where(rec.path, 'attr axis')}: must be 'linear' or 'rotary', got {rec.axis!r}"
@@ -342,7 +342,7 @@ def _check_scale(rec: Recording, name: Any) -> None:
             )
 
 
-def _check_mass(mass: Any, label: str) -> float:
+def check_mass(mass: Any, label: str) -> float:
     ok = isinstance(mass, int | float | np.integer | np.floating) and not isinstance(
         mass, bool | np.bool_
     )
@@ -367,7 +367,7 @@ def require_mass(rec: Recording) -> float:
         raise FricjaxError(
             f"{label}: missing (give --mass or make mass a free parameter in the config)"
         )
-    return _check_mass(rec.mass, label)
+    return check_mass(rec.mass, label)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -397,7 +397,7 @@ def read_recording(path: str | Path, *, mass: float | None = None) -> Recording:
         raise FricjaxError(f"{where(path)}: no such file")
     if mass is not None:
         # checked as the flag it came from: the file's own mass attribute is not read
-        mass = _check_mass(mass, MASS_FLAG)
+        mass = check_mass(mass, MASS_FLAG)
     rec = _read_csv(path) if suffix == _CSV_SUFFIX else _read_hdf5(path, read_mass=mass is None)
     if mass is not None:
         rec = replace(rec, mass=mass)

@@ -9,13 +9,17 @@ parameters on a bound of their search range are flagged as bounds, not measureme
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from fricjax.diagnose.run import on_bound
-from fricjax.io.atomic import write_text_atomic
+import h5py
+import numpy as np
+
+from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
+from fricjax.params import on_bound
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt
@@ -314,3 +318,41 @@ def write_reports(diag: Diagnosis, out: Path) -> dict[str, Path]:
             out / "report.html", to_html(blocks, f"Diagnosis of {Path(diag.recording).name}")
         ),
     }
+
+
+# -- output --------------------------------------------------------------------------------
+
+#: The files :func:`write_diagnosis` writes under fixed names (plus its figures).
+OUTPUT_FILES = ("diagnosis.json", "models.h5", "report.md", "report.html")
+
+
+def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
+    """Write diagnosis.json, models.h5, report.md, report.html and its figures into
+    ``out_dir``."""
+    out = make_folder(out_dir)
+    json_name, models_name = OUTPUT_FILES[:2]
+    paths = {"json": out / json_name}
+    with diag.clock.stage("report", "figures, models file and report"):
+        paths["models"] = _write_models(diag, out / models_name)
+        paths.update(write_reports(diag, out))
+    # diagnosis.json last, so its timing holds the report stage too
+    write_text_atomic(paths["json"], json.dumps(diag.as_json(), indent=2) + "\n")
+    return paths
+
+
+def _write_models(diag: Diagnosis, path: Path) -> Path:
+    def fill(f: h5py.File) -> None:
+        f.attrs["format"] = "fricjax-diagnosis-models-v1"
+        f.attrs["recording"] = diag.recording
+        for label, m in (("base", diag.base), ("final", diag.final)):
+            model, spec, theta = m.reduced()
+            g = f.create_group(label)
+            g.attrs["model"] = model.name
+            g.attrs["terms"] = json.dumps([t.name for t in model.terms])
+            named = spec.as_dict(theta)
+            g["names"] = np.array(list(named), dtype=h5py.string_dtype())
+            g["values"] = np.array(list(named.values()), dtype=np.float64)
+            g["free"] = np.array([spec[n].free for n in named], dtype=bool)
+            g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
+
+    return write_hdf5_atomic(path, fill)

@@ -24,20 +24,18 @@ A candidate that passes the statistics but not cross-validation is reported as
 output-error lack of fit against the record's noise is significant (``F(ν_r, ν)``, p < α),
 the finding is ``unexplained`` at the segment of the record that misfits most.
 
-Output (:func:`write_diagnosis`): ``diagnosis.json`` (docs/formats.md), ``report.md`` and
-``report.html`` (:mod:`fricjax.diagnose.report`), ``models.h5`` with the base and final models.
+Output (:func:`fricjax.diagnose.report.write_diagnosis`): ``diagnosis.json``
+(docs/formats.md), ``report.md`` and ``report.html``, ``models.h5`` with the base and final
+models.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 
 from fricjax.diagnose.catalogue import candidate
@@ -60,9 +58,8 @@ from fricjax.diagnose.judge import (
 from fricjax.diagnose.stages import LIMITED, TIME_LIMIT_S, Clock, OnStage
 from fricjax.errors import FricjaxError, where
 from fricjax.identify import IdentifySettings, identify
-from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.output_error import OutputErrorSettings
-from fricjax.params import ParamSpec
+from fricjax.params import at_bounds
 from fricjax.problem import Problem
 
 #: Seconds a stage may take by default (``[diagnose.stage_limits]``).
@@ -302,32 +299,6 @@ def _decision_json(d: Decision) -> dict[str, Any]:
         "heldout": [v.as_json() for v in d.verdicts],
         "alternatives": [a.fit.effect for a in d.alternatives],
     }
-
-
-# A parameter within this fraction of its search range from a bound is "on the bound":
-# LM's sine transform reaches a bound only asymptotically, 1e-3 of the range is where its
-# gradient has fallen to ~6 % of its interior value.
-BOUND_TOL = 1e-3
-
-
-def on_bound(spec: ParamSpec | None, name: str, value: float) -> str:
-    """``"lower"``/``"upper"`` where ``value`` sits on that bound of ``name``'s search
-    range (within :data:`BOUND_TOL` of it), else ``""``."""
-    if spec is None or name not in spec.names or not spec[name].free:
-        return ""
-    p = spec[name]
-    tol = BOUND_TOL * (p.upper - p.lower)
-    if value <= p.lower + tol:
-        return "lower"
-    if value >= p.upper - tol:
-        return "upper"
-    return ""
-
-
-def at_bounds(spec: ParamSpec, params: dict[str, float]) -> dict[str, str]:
-    """``{name: "lower"|"upper"}`` for each of ``params`` on a bound of its search range: a
-    limit the fit ran into, not a measurement."""
-    return {n: side for n, v in params.items() if (side := on_bound(spec, n, float(v)))}
 
 
 def jsonable(obj: Any) -> Any:
@@ -650,43 +621,3 @@ def _unexplained(model: Fitted, p: float, nu: int) -> dict[str, Any]:
         "delta_bic": excess,
         "p_value": p,
     }
-
-
-# -- output --------------------------------------------------------------------------------
-
-#: The files :func:`write_diagnosis` writes under fixed names (plus its figures).
-OUTPUT_FILES = ("diagnosis.json", "models.h5", "report.md", "report.html")
-
-
-def write_diagnosis(diag: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
-    """Write diagnosis.json, models.h5, report.md, report.html and its figures into
-    ``out_dir``."""
-    from fricjax.diagnose.report import write_reports
-
-    out = make_folder(out_dir)
-    json_name, models_name = OUTPUT_FILES[:2]
-    paths = {"json": out / json_name}
-    with diag.clock.stage("report", "figures, models file and report"):
-        paths["models"] = _write_models(diag, out / models_name)
-        paths.update(write_reports(diag, out))
-    # diagnosis.json last, so its timing holds the report stage too
-    write_text_atomic(paths["json"], json.dumps(diag.as_json(), indent=2) + "\n")
-    return paths
-
-
-def _write_models(diag: Diagnosis, path: Path) -> Path:
-    def fill(f: h5py.File) -> None:
-        f.attrs["format"] = "fricjax-diagnosis-models-v1"
-        f.attrs["recording"] = diag.recording
-        for label, m in (("base", diag.base), ("final", diag.final)):
-            model, spec, theta = m.reduced()
-            g = f.create_group(label)
-            g.attrs["model"] = model.name
-            g.attrs["terms"] = json.dumps([t.name for t in model.terms])
-            named = spec.as_dict(theta)
-            g["names"] = np.array(list(named), dtype=h5py.string_dtype())
-            g["values"] = np.array(list(named.values()), dtype=np.float64)
-            g["free"] = np.array([spec[n].free for n in named], dtype=bool)
-            g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
-
-    return write_hdf5_atomic(path, fill)

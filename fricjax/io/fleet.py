@@ -44,7 +44,7 @@ import numpy as np
 from fricjax.errors import FricjaxError, where
 from fricjax.fleet import OK, FleetFit
 from fricjax.io.atomic import write_hdf5_atomic
-from fricjax.io.results import _attr, _str_array, _strs, package_versions
+from fricjax.io.results import attr_value, package_versions, read_strs, str_array
 
 FORMAT = "fricjax-fleet-v1"
 _FIT_FLOATS = ("cost", "ems", "cost_search", "cond")
@@ -113,11 +113,11 @@ def write_fleet(fleet: FleetFile, path: str | Path) -> Path:
         f.attrs["n_failed"] = sum(not fit.ok for fit in fits)
         rec = f.create_group("recordings")
         for key in ("name", "path", "sha256", "order", "status", "reason"):
-            rec[key] = _str_array([str(getattr(fit, key)) for fit in fits])
+            rec[key] = str_array([str(getattr(fit, key)) for fit in fits])
         rec["shard"] = np.array([fit.shard for fit in fits], dtype=np.int64)
         p = f.create_group("params")
-        p["names"] = _str_array(fleet.names)
-        p["units"] = _str_array(fleet.units)
+        p["names"] = str_array(fleet.names)
+        p["units"] = str_array(fleet.units)
         p["lower"] = np.asarray(fleet.lower, np.float64)
         p["upper"] = np.asarray(fleet.upper, np.float64)
         d = len(fleet.names)
@@ -127,7 +127,7 @@ def write_fleet(fleet: FleetFile, path: str | Path) -> Path:
         flags = [fit.flags if fit.ok and fit.flags else [""] * d for fit in fits]
         p["flags"] = np.array(flags, dtype=h5py.string_dtype()).reshape(len(fits), d)
         fx = f.create_group("fixed")
-        fx["names"] = _str_array(fixed_names)
+        fx["names"] = str_array(fixed_names)
         fx["value"] = np.array(
             [[fit.fixed.get(k, np.nan) for k in fixed_names] for fit in fits], dtype=np.float64
         ).reshape(len(fits), len(fixed_names))
@@ -148,14 +148,14 @@ def read_fleet(path: str | Path) -> FleetFile:
         raise FricjaxError(f"{where(path)}: fleet file not found")
     try:
         with h5py.File(path, "r") as f:
-            if _attr(f.attrs.get("format", "")) != FORMAT:
+            if attr_value(f.attrs.get("format", "")) != FORMAT:
                 raise FricjaxError(
                     f"{where(path, 'attr format')}: not a fricjax fleet file (expected {FORMAT})"
                 )
-            attrs = {k: _attr(v) for k, v in f.attrs.items()}
-            rec = {k: _strs(f["recordings"][k]) for k in ("name", "path", "sha256", "order")}
-            status = _strs(f["recordings/status"])
-            reason = _strs(f["recordings/reason"])
+            attrs = {k: attr_value(v) for k, v in f.attrs.items()}
+            rec = {k: read_strs(f["recordings"][k]) for k in ("name", "path", "sha256", "order")}
+            status = read_strs(f["recordings/status"])
+            reason = read_strs(f["recordings/reason"])
             shard = f["recordings/shard"][()]
             p = f["params"]
             value, std, rel = p["value"][()], p["std"][()], p["rel_std"][()]
@@ -163,7 +163,7 @@ def read_fleet(path: str | Path) -> FleetFile:
                 [s.decode() if isinstance(s, bytes) else str(s) for s in row]
                 for row in p["flags"][()]
             ]
-            fixed_names = _strs(f["fixed/names"])
+            fixed_names = read_strs(f["fixed/names"])
             fixed = f["fixed/value"][()]
             g = f["fit"]
             floats = {k: g[k][()] for k in _FIT_FLOATS}
@@ -193,8 +193,8 @@ def read_fleet(path: str | Path) -> FleetFile:
                     )
                 )
             return FleetFile(
-                names=_strs(p["names"]),
-                units=_strs(p["units"]),
+                names=read_strs(p["names"]),
+                units=read_strs(p["units"]),
                 lower=p["lower"][()],
                 upper=p["upper"][()],
                 fits=fits,

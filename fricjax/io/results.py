@@ -125,7 +125,7 @@ def provenance(
     }
 
 
-def _str_array(items: list[str]) -> np.ndarray:
+def str_array(items: list[str]) -> np.ndarray:
     return np.array(items, dtype=h5py.string_dtype())
 
 
@@ -144,9 +144,9 @@ def write_results(results: ResultsFile, path: str | Path) -> Path:
             for key in ("cost", "ems", "cost_search", "ems_search"):
                 g.attrs[key] = float(getattr(run, key))
             p = g.create_group("params")
-            p["names"] = _str_array(run.names)
-            p["units"] = _str_array(run.units)
-            p["flags"] = _str_array(run.flags)
+            p["names"] = str_array(run.names)
+            p["units"] = str_array(run.units)
+            p["flags"] = str_array(run.flags)
             for key in ("value", "lower", "upper", "std", "rel_std", "corr"):
                 p[key] = np.asarray(getattr(run, key), dtype=np.float64)
             fixed = g.create_group("fixed")
@@ -166,7 +166,7 @@ def write_results(results: ResultsFile, path: str | Path) -> Path:
     return write_hdf5_atomic(path, fill)
 
 
-def _attr(value: Any) -> Any:
+def attr_value(value: Any) -> Any:
     if isinstance(value, bytes):
         return value.decode("utf-8", errors="replace")
     if isinstance(value, np.generic):
@@ -216,7 +216,7 @@ class _RunReader:
         ds = self.dataset(key)
         if ds.dtype.kind not in "OSU" or ds.ndim != 1:
             raise self.fail(key, f"expected a 1-D array of strings, got {ds.dtype} {ds.shape}")
-        out = _strs(ds)
+        out = read_strs(ds)
         if length is not None and len(out) != length:
             raise self.fail(key, f"has {len(out)} entries, params/names has {length}")
         return out
@@ -245,7 +245,7 @@ class _RunReader:
             if required:
                 raise self.fail("", f"attr {key!r} missing")
             return None
-        value = _attr(self.group.attrs[key])
+        value = attr_value(self.group.attrs[key])
         if not _is_number(value) or (required and not math.isfinite(value)):
             kind = "a finite number" if required else "a number"
             raise self.fail("", f"attr {key!r} must be {kind}, got {value!r}")
@@ -272,19 +272,19 @@ def _read_run(path: Path, label: str, g: Any) -> RunResult:
         raise r.fail("fixed", "missing group of fixed parameters (attrs name -> value)")
     fixed = {}
     for key, raw in fixed_group.attrs.items():
-        value = _attr(raw)
+        value = attr_value(raw)
         if not _is_number(value) or not math.isfinite(value):
             raise r.fail(f"fixed attr {key!r}", f"must be a finite number, got {value!r}")
         if key in names:
             raise r.fail(f"fixed attr {key!r}", "is also a free parameter in params/names")
         fixed[key] = float(value)
-    method = _attr(g.attrs.get("method"))
+    method = attr_value(g.attrs.get("method"))
     if not isinstance(method, str):
         raise r.fail("", f"attr 'method' must be a string, got {method!r}")
     costs = {key: r.number_attr(key, required=True) for key in _COST_ATTRS}
     for key in _NUMBER_ATTRS:
         r.number_attr(key, required=False)
-    run_attrs = {k: _attr(v) for k, v in g.attrs.items() if k not in ("method", *_COST_ATTRS)}
+    run_attrs = {k: attr_value(v) for k, v in g.attrs.items() if k not in ("method", *_COST_ATTRS)}
     chain_x = r.floats("chains/x", (None, d), finite=False)
     n_levels = None
     traces = {}
@@ -322,7 +322,7 @@ def _read_run(path: Path, label: str, g: Any) -> RunResult:
     )
 
 
-def _strs(ds: h5py.Dataset) -> list[str]:
+def read_strs(ds: h5py.Dataset) -> list[str]:
     return [s.decode("utf-8", errors="replace") if isinstance(s, bytes) else str(s) for s in ds[()]]
 
 
@@ -343,11 +343,11 @@ def read_results(path: str | Path) -> ResultsFile:
         raise FricjaxError(f"{where(path)}: not a readable HDF5 results file ({err})") from None
     try:
         with f:
-            if _attr(f.attrs.get("format", "")) != FORMAT:
+            if attr_value(f.attrs.get("format", "")) != FORMAT:
                 raise FricjaxError(
                     f"{where(path, 'attr format')}: not a fricjax results file (expected {FORMAT})"
                 )
-            attrs = {k: _attr(v) for k, v in f.attrs.items()}
+            attrs = {k: attr_value(v) for k, v in f.attrs.items()}
             group = f.get("runs")
             if group is None:
                 raise FricjaxError(f"{where(path, '/runs')}: missing group of runs")

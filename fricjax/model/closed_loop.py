@@ -38,7 +38,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from fricjax.errors import FricjaxError, where
-from fricjax.model.simulate import _sampled_accel, simulate
+from fricjax.model.simulate import sampled_accel, simulate
 from fricjax.model.system import Model
 from fricjax.model.term import Signals
 
@@ -175,5 +175,5 @@ def simulate_closed_loop(
 
     init = (x0, v0, x0 - v0 * dt, x0 - 2.0 * v0 * dt)
     _, (xs, vs, us) = jax.lax.scan(step, init, (t, r, w))
-    a = _sampled_accel(model, p, Signals(t, xs, vs, us))
+    a = sampled_accel(model, p, Signals(t, xs, vs, us))
     return ClosedLoopTrajectory(xs, vs, a, us)

@@ -1,4 +1,5 @@
-"""Term names usable in a config's ``[model].terms`` list."""
+"""Term names usable in a config's ``[model].terms`` list: the base library and the
+diagnosis catalogue's effects (:mod:`fricjax.model.effects`)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from fricjax.model.drive import HarmonicDrive, MeasuredInput
+from fricjax.model.effects import EFFECTS
 from fricjax.model.friction import CoulombViscous, StribeckFriction
 from fricjax.model.term import Term
 
@@ -16,12 +18,8 @@ TERMS: dict[str, TermFactory] = {
     MeasuredInput.name: MeasuredInput,
     StribeckFriction.name: StribeckFriction,
     CoulombViscous.name: CoulombViscous,
+    **{cls.name: cls for cls in EFFECTS},
 }
-
-
-def register(name: str, factory: TermFactory) -> None:
-    """Make a term available to configs (used by the diagnosis catalogue)."""
-    TERMS[name] = factory
 
 
 def make_term(name: str, options: Mapping[str, Any]) -> Term:

@@ -446,10 +446,10 @@ def _simulate(
     _, (xs, vs) = jax.lax.scan(interval, (x0, v0), (t[:-1], u[:-1], u[1:]))
     x = jnp.concatenate([x0[None], xs])
     v = jnp.concatenate([v0[None], vs])
-    return Trajectory(x, v, _sampled_accel(model, p, Signals(t, x, v, u)))
+    return Trajectory(x, v, sampled_accel(model, p, Signals(t, x, v, u)))
 
 
-def _sampled_accel(model: Model, p: Mapping[str, Array], s: Signals) -> Float[Array, " n"]:
+def sampled_accel(model: Model, p: Mapping[str, Array], s: Signals) -> Float[Array, " n"]:
     """``(F_p − F_f)/m`` on sampled states, with the stick/slip rule at rest [m/s²]."""
     sliding = model.force(p, s) / p["mass"]
     return jnp.where(s.v != 0, sliding, model.rest_force(p, s) / p["mass"])

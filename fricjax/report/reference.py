@@ -23,7 +23,6 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-import fricjax.diagnose.catalogue  # noqa: F401  (registers the catalogue's terms)
 from fricjax.config import PARAM_KEYS, SECTIONS
 from fricjax.data.preprocess import PreprocessSettings
 from fricjax.diagnose.run import DiagnoseSettings

@@ -85,7 +85,7 @@ _HOST_ONLY = (
 _DEFAULTS = AnnealSettings()
 
 
-def _device_settings(settings: AnnealSettings) -> AnnealSettings:
+def device_settings(settings: AnnealSettings) -> AnnealSettings:
     return dataclasses.replace(settings, **{f: getattr(_DEFAULTS, f) for f in _HOST_ONLY})
 
 
@@ -272,7 +272,7 @@ class _Setup(NamedTuple):
     n_pad: int
 
 
-def _setup(
+def chain_setup(
     key: Array | int,
     lower: Float[ArrayLike, " d"],
     upper: Float[ArrayLike, " d"],
@@ -301,7 +301,7 @@ def _setup(
     return _Setup(settings, METHODS[method], lo, hi, n_chains, x_start, key, devices, n_dev, n_pad)
 
 
-def _checked_t0(t0: float, settings: AnnealSettings, source: object) -> float:
+def checked_t0(t0: float, settings: AnnealSettings, source: object) -> float:
     """``t0 = K·δ`` (eq. 15), or the one-line error of a cost that is nowhere finite or
     whose range overflows."""
     if math.isnan(t0):
@@ -345,7 +345,7 @@ def run_chains(
     ``settings.max_levels`` levels, or on Ctrl-C (``interrupted=True``, the last complete
     level kept). Costs are in the cost's units, temperatures too.
     """
-    run = _setup(key, lower, upper, method, settings, n_chains, x0, devices, source)
+    run = chain_setup(key, lower, upper, method, settings, n_chains, x0, devices, source)
     settings, algorithm, lo, hi = run.settings, run.algorithm, run.lower, run.upper
     n_chains, x_start, key, n_dev, n_pad = run.n_chains, run.x0, run.key, run.n_dev, run.n_pad
     mesh = Mesh(np.asarray(run.devices), ("chains",))
@@ -354,7 +354,7 @@ def run_chains(
 
     start = time.perf_counter()
     lower_j, upper_j = jnp.asarray(lo), jnp.asarray(hi)
-    on_device = _device_settings(settings)
+    on_device = device_settings(settings)
     delta, states = _start(
         algorithm,
         key,
@@ -367,7 +367,7 @@ def run_chains(
         n_chains,
         n_pad,
     )
-    t0 = _checked_t0(settings.K * float(delta), settings, source)
+    t0 = checked_t0(settings.K * float(delta), settings, source)
     states = jax.device_put(states, by_chain)
     lower_j, upper_j = jax.device_put((lower_j, upper_j), replicated)
     temps = np.asarray(temperature(settings.schedule, t0, np.arange(settings.max_levels), settings))
@@ -441,7 +441,7 @@ def run_chains(
 _SAMPLE, _ANNEAL, _FINISH, _DONE = 0, 1, 2, 3
 
 
-class _Control(NamedTuple):
+class Control(NamedTuple):
     """The host-only fields of the settings as traced values of the one-program search
     (changing them does not recompile): ``K`` (eq. 15), ``rel_temps [L]`` (the schedule's
     ``t_k/t0``, :func:`temperature` at ``t0 = 1``), ``t_min_rel``, ``patience``,
@@ -483,7 +483,7 @@ class _Run(NamedTuple):
     aux: Any
 
 
-def _fused_program(
+def fused_program(
     algorithm: Algorithm,
     key: Array,
     cost_fn: Callable[[Float[Array, " d"]], tuple[Float[Array, ""], Any]],
@@ -491,7 +491,7 @@ def _fused_program(
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
     settings: AnnealSettings,
-    control: _Control,
+    control: Control,
     n_samples: int,
     n_chains: int,
     n_pad: int,
@@ -638,9 +638,9 @@ def _fused_program(
     return jax.lax.while_loop(lambda r: r.phase != _DONE, body, first)
 
 
-_fused = stored(_fused_program)
+_fused = stored(fused_program)
 # run_chains_fused's ``fast_compile`` (fricjax.search.fast_compile)
-_fused_fast_compile = stored(_fused_program, compiler_options=FAST_COMPILE_LOOPS)
+_fused_fast_compile = stored(fused_program, compiler_options=FAST_COMPILE_LOOPS)
 
 
 def relative_temperatures(settings: AnnealSettings) -> np.ndarray:
@@ -660,7 +660,7 @@ def relative_temperatures(settings: AnnealSettings) -> np.ndarray:
     raise FricjaxError(f"{where(None, 'schedule')}: must be one of {', '.join(SCHEDULES)}")
 
 
-class _WithAux(eqx.Module):
+class WithAux(eqx.Module):
     """``θ -> (cost, None)``: a plain cost in the ``(cost, aux)`` form."""
 
     cost_fn: Any
@@ -691,7 +691,7 @@ def run_chains_fused(
     search of :mod:`fricjax.search.separable`: its solve compiles into every program
     that evaluates it, ~1-2 s each on 2 cores, while the whole search runs for ~0.1 s):
     the box sample, every step of every chain and the final evaluation go through one
-    vmapped call of the cost inside one ``lax.while_loop`` (:func:`_fused_program`), so
+    vmapped call of the cost inside one ``lax.while_loop`` (:func:`fused_program`), so
     the cost compiles once instead of once per program (start, level, end points).
 
     ``has_aux``: ``cost_fn(θ [d]) -> (cost [], aux)``; the chains' best points are then
@@ -716,7 +716,7 @@ def run_chains_fused(
     * Ctrl-C cannot stop the program part-way; raised by ``on_level`` it ends the replay
       and sets ``interrupted`` (the result is the complete run).
     """
-    run = _setup(key, lower, upper, method, settings, n_chains, x0, devices, source)
+    run = chain_setup(key, lower, upper, method, settings, n_chains, x0, devices, source)
     settings, n_chains = run.settings, run.n_chains
     sharding = None
     if run.n_dev > 1:
@@ -725,7 +725,7 @@ def run_chains_fused(
         )
     rel_temps = relative_temperatures(settings)
     # numpy values: the call transfers them (jnp.asarray would compile a copy per shape)
-    control = _Control(
+    control = Control(
         K=np.float64(settings.K),
         rel_temps=rel_temps,
         t_min_rel=np.float64(settings.t_min_rel),
@@ -736,11 +736,11 @@ def run_chains_fused(
     args = (
         run.algorithm,
         run.key,
-        cost_fn if has_aux else _WithAux(cost_fn),
+        cost_fn if has_aux else WithAux(cost_fn),
         run.x0,
         run.lower,
         run.upper,
-        _device_settings(settings),
+        device_settings(settings),
         control,
         settings.n_temperature_samples,
         n_chains,
@@ -753,7 +753,7 @@ def run_chains_fused(
     ready = time.perf_counter() - start
     out = jax.device_get(program(*args))
     elapsed = time.perf_counter() - start
-    t0 = _checked_t0(float(out.t0), settings, source)
+    t0 = checked_t0(float(out.t0), settings, source)
     n_levels = int(out.level)
     n_evals = np.asarray(out.n_evals[:n_levels], dtype=np.int64)
     # the final evaluation of the best points takes its share of the run time too

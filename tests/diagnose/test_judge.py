@@ -27,7 +27,8 @@ from fricjax.diagnose.judge import (
     starts,
     vuong,
 )
-from fricjax.diagnose.run import DiagnoseSettings, diagnose, write_diagnosis
+from fricjax.diagnose.report import write_diagnosis
+from fricjax.diagnose.run import DiagnoseSettings, diagnose
 from fricjax.identify import IdentifySettings
 from fricjax.problem import build_problem
 

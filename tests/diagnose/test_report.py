@@ -9,8 +9,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from fricjax.diagnose.report import length, params_text, where_text
-from fricjax.diagnose.run import at_bounds, on_bound
-from fricjax.params import Param, ParamSpec
+from fricjax.params import Param, ParamSpec, at_bounds, on_bound
 from fricjax.report.document import Heading, Image, Para, Table, to_html, to_markdown
 from fricjax.report.plots import plt, save
 

@@ -16,7 +16,8 @@ import pytest
 
 from fricjax.api import load
 from fricjax.diagnose.catalogue import CATALOGUE
-from fricjax.diagnose.run import STAGE_LIMITS, DiagnoseSettings, diagnose, write_diagnosis
+from fricjax.diagnose.report import write_diagnosis
+from fricjax.diagnose.run import STAGE_LIMITS, DiagnoseSettings, diagnose
 from fricjax.diagnose.stages import LIMITED, STAGES, Clock, StageEvent
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings
