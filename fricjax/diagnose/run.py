@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -430,14 +431,7 @@ def diagnose(
     named = [st.chosen for st in steps if st.chosen is not None]
     final = named[-1].fit.fitted if named else base
     findings = [_finding(problem, d, st) for st in steps if (d := st.chosen) is not None]
-    # a candidate refused at one step and named at a later one is a finding, not both
-    named_effects = {d.fit.effect for d in named}
-    refused_by: dict[str, Decision] = {}
-    for st in steps:
-        for d in st.decisions:
-            if not d.named and d.fit.effect not in named_effects:
-                refused_by.setdefault(d.fit.effect, d)
-    refused = [_refused(problem, d) for d in refused_by.values()]
+    refused = [_refused(problem, best, rest) for best, rest in refused_by_step(steps)]
     lof_before, lof_after = lack_of_fit_p(base, evidence.nu), lack_of_fit_p(final, evidence.nu)
     if refused:
         findings += refused
@@ -566,10 +560,31 @@ def _finding(problem: Problem, d: Decision, step: Step) -> dict[str, Any]:
     }
 
 
-def _refused(problem: Problem, d: Decision) -> dict[str, Any]:
+def refused_by_step(steps: Sequence[Step]) -> list[tuple[Decision, list[Decision]]]:
+    """``(best, others)`` for each step that refused candidates, best = the largest ΔBIC.
+
+    The candidates refused at one step are rival descriptions of the one residual the model
+    leaves there, so they make one ``unexplained`` finding, not one each. A term refused at
+    one step and named at a later one is a finding, not both; one refused at several steps
+    counts at the first."""
+    seen = {st.chosen.fit.effect for st in steps if st.chosen is not None}
+    out = []
+    for st in steps:
+        rivals = [d for d in st.decisions if not d.named and d.fit.effect not in seen]
+        seen |= {d.fit.effect for d in rivals}
+        if rivals:
+            best = max(rivals, key=lambda d: d.fit.delta_bic)
+            out.append(
+                (best, sorted((d for d in rivals if d is not best), key=lambda d: -d.fit.delta_bic))
+            )
+    return out
+
+
+def _refused(problem: Problem, d: Decision, rivals: Sequence[Decision] = ()) -> dict[str, Any]:
     """``unexplained`` at the place of a candidate that passed the statistics but not
     cross-validation: the record holds something there that this term does not explain in
-    a way that carries over to data its fit has not seen."""
+    a way that carries over to data its fit has not seen. ``rivals``: the other candidates
+    refused at the same step (``rejected_alternatives``, by ΔBIC)."""
     f = d.fit
     location = candidate(f.effect).location(f.params, problem)
     if not any(v.judged for v in d.verdicts):
@@ -582,13 +597,28 @@ def _refused(problem: Problem, d: Decision) -> dict[str, Any]:
         "explanation": (
             f"The record holds structure that {f.effect} lowers BIC by {f.delta_bic:.1f} "
             f"on, but {why}: it is not claimed."
+            + (
+                f" {_words([r.fit.effect for r in rivals])} fitted it too and "
+                f"{'was' if len(rivals) == 1 else 'were'} refused as well."
+                if rivals
+                else ""
+            )
         ),
         "location": location,
         "params": {},
         "delta_bic": f.delta_bic,
         "p_value": f.p_value,
         "rejected_candidate": {"effect": f.effect, "params": f.params, **_decision_json(d)},
+        "rejected_alternatives": [
+            {"effect": r.fit.effect, "delta_bic": r.fit.delta_bic, "p_value": r.fit.p_value}
+            for r in rivals
+        ],
     }
+
+
+def _words(names: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
 
 
 def _unexplained(model: Fitted, p: float, nu: int) -> dict[str, Any]:
