@@ -118,17 +118,16 @@ def _value(res, theta_aug):
     return _jitted()(res, theta_aug)
 
 
-def reference(problem, fit, start: dict[str, float], states, oe, nfev: int):
+def reference(problem, free, fit, start: dict[str, float], states, oe, nfev: int):
     """scipy least_squares (TRF, Jacobian scaling) on ``problem``'s output-error residual
     with the fit's free components, from ``fit``'s end and from ``start``: two (cost
     [σ_x²], evaluations, seconds)."""
     from scipy.optimize import least_squares
 
-    from fricjax.diagnose.judge import moving
     from fricjax.output_error import jacobian_at, output_error_residual
 
     spec = problem.spec
-    movable = dict(zip(spec.free_names, moving(spec), strict=True))
+    movable = dict(zip(spec.free_names, free, strict=True))
     out = []
     for named, st in ((fit.params, (fit.states_x, fit.states_v)), (start, states)):
         setup = output_error_residual(problem, named, oe, st)
@@ -175,7 +174,7 @@ def run_case(path: Path, config: str, nfev: int) -> dict[str, Outcome]:
     oe = settings.output_error(evidence)
     sup = Superset.build(problem)
     full = {**sup.problem.spec.as_dict(), **run.params}
-    base_pb, k = sup.model(()), sup.n_directions(())
+    base_pb, base_free, k = sup.problem, sup.moving(()), sup.n_directions(())
     out: dict[str, Outcome] = {}
 
     def timed(fn):
@@ -183,10 +182,12 @@ def run_case(path: Path, config: str, nfev: int) -> dict[str, Outcome]:
         value = fn()
         return value, time.perf_counter() - began
 
-    _, cold = timed(lambda: converged(base_pb, full, oe, n_directions=k))
+    _, cold = timed(lambda: converged(base_pb, base_free, full, oe, n_directions=k))
     rounds: list = []
-    base_fit, warm = timed(lambda: converged(base_pb, full, oe, n_directions=k, rounds=rounds))
-    ref_end, ref_start = reference(base_pb, base_fit, full, None, oe, nfev)
+    base_fit, warm = timed(
+        lambda: converged(base_pb, base_free, full, oe, n_directions=k, rounds=rounds)
+    )
+    ref_end, ref_start = reference(base_pb, base_free, base_fit, full, None, oe, nfev)
     out["base"] = Outcome(
         base_fit.cost, len(rounds), sum(r[1] for r in rounds), cold, warm, ref_end, ref_start
     )
@@ -198,10 +199,15 @@ def run_case(path: Path, config: str, nfev: int) -> dict[str, Outcome]:
     todo = [(TERM, starts(base, TERM, band, settings.n_starts)[:1])]
     _, cold = timed(lambda: fit_candidates(base, todo, oe, evidence.nu))
     (cf,), warm = timed(lambda: fit_candidates(base, todo, oe, evidence.nu))
-    term_pb = sup.model((TERM,))
     start = {**base_fit.params, **todo[0][1][0]}
     ref_end, ref_start = reference(
-        term_pb, cf.fitted.fit, start, (base_fit.states_x, base_fit.states_v), oe, nfev
+        sup.problem,
+        sup.moving((TERM,)),
+        cf.fitted.fit,
+        start,
+        (base_fit.states_x, base_fit.states_v),
+        oe,
+        nfev,
     )
     out["base + " + TERM] = Outcome(
         cf.fitted.cost, 0, cf.fitted.fit.n_steps, cold, warm, ref_end, ref_start

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fricjax.diagnose.judge import Fitted, converged_rows, fit_rows, moving
+from fricjax.diagnose.judge import Fitted, converged_rows, fit_rows
 from fricjax.output_error import (
     OutputError,
     OutputErrorSettings,
@@ -150,7 +150,7 @@ class CrossValidation:
         k = sup.n_directions(before.active)
         costs = []
         for m in (before, after):
-            free = moving(m.problem.spec)
+            free = m.moving
             fits = converged_rows(
                 sup.problem,
                 _first_round(m, free, samples, self.settings, k),

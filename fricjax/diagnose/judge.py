@@ -45,9 +45,9 @@ monotone stroke a bump in position and a harmonic in time bend x(t) alike): Vuon
 whether the record prefers the best significantly.
 
 One model. Base and candidates are all the same :class:`Superset` model, the terms not
-under test pinned (and held by the fit's mask, :func:`moving`), so one compiled output-error
-program serves every fit of a forward-selection step; all the candidates' output-error fits
-go through :func:`fit_candidates`.
+under test pinned at their nulls by the fit's mask (:meth:`Superset.moving`), so one
+compiled output-error program serves every fit of a forward-selection step; all the
+candidates' output-error fits go through :func:`fit_candidates`.
 """
 
 from __future__ import annotations
@@ -92,10 +92,6 @@ __all__ = [
 ]
 
 
-# width of a pinned parameter's box where its own spacing is smaller (Superset docstring)
-_PIN = 1e-100
-
-
 @dataclass(frozen=True)
 class Superset:
     """The base model with every simulable, applicable candidate's term appended: ONE model,
@@ -103,15 +99,10 @@ class Superset:
     every step and every held-out fit of a record of that length.
 
     A model "base + active terms" is this superset with every other term *pinned*: its
-    parameters' box collapsed to ``[null, null + max(4 ulp, 1e-100)]`` (amplitudes at 0,
-    shape parameters at their grid's middle), where its force is zero to within 1e-100 of
-    an amplitude. The box is not part of the compiled program (``ParamSpec.structural``),
-    the free/fixed pattern is, so pinning this way costs no compilation. A pinned
-    parameter's Jacobian column is then ~1e-100 of a free one's (a shape parameter's is
-    proportional to its amplitude, itself pinned at 0): Levenberg–Marquardt's damped step
-    along it is nil, so it neither moves nor keeps the solver from meeting its tolerance
-    (a box 1e-9 of the range wide left columns large enough for the damped step to wander
-    along them to the step limit).
+    parameters held at their nulls (amplitudes at 0, shape parameters at their grid's
+    middle), where its force is zero, by the fit's mask (:meth:`moving`), the one encoding
+    of a pinned term. The mask is an input of the compiled program, not part of it, so
+    pinning costs no compilation, and a pinned parameter takes no tangent and no step.
 
     Attributes:
         record: the record with the base model.
@@ -139,17 +130,15 @@ class Superset:
     def effects(self) -> tuple[str, ...]:
         return tuple(self.names)
 
-    def model(self, active: Sequence[str]) -> Problem:
-        """The record with base + ``active`` terms: every other term pinned (docstring)."""
-        spec = self.problem.spec
-        pinned = {n for e, ns in self.names.items() if e not in active for n in ns}
-        params = []
-        for q in spec.params:
-            if q.name in pinned and q.free:
-                up = q.init + max(4.0 * abs(float(np.spacing(q.init))), _PIN)
-                q = replace(q, lower=q.init, upper=up)
-            params.append(q)
-        return replace(self.problem, spec=replace(spec, params=tuple(params)))
+    def pinned(self, active: Sequence[str]) -> frozenset[str]:
+        """The parameters of every term not in ``active``: held at their nulls."""
+        return frozenset(n for e, ns in self.names.items() if e not in active for n in ns)
+
+    def moving(self, active: Sequence[str]) -> np.ndarray:
+        """[d] bool over the superset's free parameters: those a fit of base + ``active``
+        moves (every free one but the pinned)."""
+        pinned = self.pinned(active)
+        return np.array([n not in pinned for n in self.problem.spec.free_names])
 
     def n_directions(self, active: Sequence[str]) -> int:
         """K of every output-error fit of a forward-selection step from base + ``active``:
@@ -177,8 +166,14 @@ class Fitted:
 
     @property
     def problem(self) -> Problem:
-        """The record with this model (the superset, the inactive terms pinned)."""
-        return self.superset.model(self.active)
+        """The record with the superset model (its inactive terms at their nulls in
+        ``fit``)."""
+        return self.superset.problem
+
+    @property
+    def moving(self) -> np.ndarray:
+        """[d] bool: the superset's free parameters this model moves."""
+        return self.superset.moving(self.active)
 
     @property
     def n_free(self) -> int:
@@ -237,31 +232,21 @@ class CandidateFit:
         return self.p_value < limit and self.delta_bic > min_delta_bic
 
 
-def moving(spec: ParamSpec) -> np.ndarray:
-    """[d] bool over ``spec.free_names``: the parameters a fit moves, i.e. those not pinned
-    by :meth:`Superset.model`'s collapsed box. The fit holds the pinned ones by its mask, so
-    its Jacobian takes no tangent along them."""
-    width = spec.upper - spec.lower
-    lower = spec.lower
-    pin = np.maximum(8.0 * np.abs(np.spacing(lower)), 2.0 * _PIN)
-    return np.asarray(width > pin)
-
-
 def _fit(
     problem: Problem,
+    free: np.ndarray,
     start: Mapping[str, float],
     settings: OutputErrorSettings,
     states: tuple[np.ndarray, np.ndarray] | None,
     n_directions: int | None,
 ) -> OutputErrorFit:
     """One output-error fit of a superset model from named values, its pinned parameters
-    held by the mask (:func:`moving`), K = ``n_directions``."""
+    held by the mask ``free`` ([d] bool, :meth:`Superset.moving`), K = ``n_directions``."""
     spec = problem.spec
     known = {k: float(v) for k, v in start.items() if k in spec}
     row = spec.flatten({**spec.as_dict(), **known})[None]
-    free = moving(spec)[None]
     k = n_directions or int(free.sum())
-    return fit_output_error_batch(problem, row, free, settings, states, n_directions=k)[0]
+    return fit_output_error_batch(problem, row, free[None], settings, states, n_directions=k)[0]
 
 
 # A fit is run again from its end while its cost still falls by more than this [σ_x²]: the
@@ -274,6 +259,7 @@ MAX_ROUNDS = 8
 
 def converged(
     problem: Problem,
+    free: np.ndarray,
     start: Mapping[str, float],
     settings: OutputErrorSettings,
     states: tuple[np.ndarray, np.ndarray] | None = None,
@@ -291,7 +277,7 @@ def converged(
     time) may still start (a time limit); None: always. ``rounds``: each round's (cost
     [σ_x²], LM steps, wall seconds) is appended to it (benchmarks)."""
     began = time.perf_counter()
-    fit = fit or _fit(problem, start, settings, states, n_directions)
+    fit = fit or _fit(problem, free, start, settings, states, n_directions)
     last = time.perf_counter() - began
     if rounds is not None:
         rounds.append((fit.cost, fit.n_steps, last))
@@ -299,7 +285,8 @@ def converged(
         if more is not None and not more(last):
             break
         began = time.perf_counter()
-        again = _fit(problem, fit.params, settings, (fit.states_x, fit.states_v), n_directions)
+        states = (fit.states_x, fit.states_v)
+        again = _fit(problem, free, fit.params, settings, states, n_directions)
         last = time.perf_counter() - began
         if rounds is not None:
             rounds.append((again.cost, again.n_steps, last))
@@ -327,7 +314,7 @@ def fit_base(
     6.2·10³ σ_x² on 232 samples, and three terms named). The user's starting values and the
     box's centre are starts independent of that bias (as ``identify``'s output-error
     refinement, :func:`fricjax.identify._output_error_polish`)."""
-    base = sup.model(())
+    base, free = sup.problem, sup.moving(())
     spec, record = base.spec, sup.record.spec
     k = sup.n_directions(())
     own = {p.name for p in record.params if p.free}
@@ -339,12 +326,12 @@ def fit_base(
         if row not in starts_:
             starts_.append(row)
     began = time.perf_counter()
-    firsts = [_fit(base, {**spec.as_dict(), **row}, settings, None, k) for row in starts_]
+    firsts = [_fit(base, free, {**spec.as_dict(), **row}, settings, None, k) for row in starts_]
     best = min(firsts, key=lambda f: f.cost if np.isfinite(f.cost) else np.inf)
     last = (time.perf_counter() - began) / len(firsts)
     if more is not None and not more(last):
         return Fitted(sup, (), best)
-    fit = converged(base, {}, settings, fit=best, n_directions=k, more=more)
+    fit = converged(base, free, {}, settings, fit=best, n_directions=k, more=more)
     return Fitted(sup, (), fit)
 
 
@@ -483,7 +470,7 @@ def fit_candidates(
     sup, n = base.superset, base.superset.record.n
     spec = sup.problem.spec
     names = list(spec.free_names)
-    own = moving(base.problem.spec)
+    own = base.moving
     states = (base.fit.states_x, base.fit.states_v)
     k_step = sup.n_directions(base.active)
     rows, masks, owner = [], [], []
@@ -552,6 +539,7 @@ def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> Candida
     start = {**end.params, **{q: cf.base.fit.params[q] for q in cf.base.superset.names[cf.effect]}}
     fit = converged(
         cf.base.problem,
+        cf.base.moving,
         start,
         settings,
         (end.states_x, end.states_v),
@@ -647,7 +635,7 @@ def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[
     r0 = r[:g]  # the current residual, the same at every grid point (term at its null)
     cols = np.stack([(r[j * g : (j + 1) * g] - r0) / step[q] for j, q in enumerate(lin, 1)], -1)
     # the current model's own columns, projected off: what it absorbs is no score
-    own = [names.index(q) for q in current.problem.spec.free_names if q not in _pinned(current)]
+    own = np.flatnonzero(current.moving)
     jac = np.asarray(_jacobian(sup.problem.residual_fn, jnp.asarray(theta0)))[keep][:, own]
     qb, _ = np.linalg.qr(jac)
     res = r0[0] - qb @ (qb.T @ r0[0])
@@ -672,10 +660,6 @@ def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[
         j = int(idx[np.argmax(score[idx])])
         out.append({k: float(grid[k][j]) for k in keys})
     return out or [{}]
-
-
-def _pinned(fitted: Fitted) -> set[str]:
-    return {n for e, ns in fitted.superset.names.items() if e not in fitted.active for n in ns}
 
 
 def remaining(current: Fitted) -> list[str]:
