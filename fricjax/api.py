@@ -541,7 +541,7 @@ def diagnose_recordings(
     mass: float | None = None,
     overrides: dict[str, Any] | None = None,
     effects: list[str] | None = None,
-    on_stage: Callable[[str, str], None] | None = None,
+    on_stage: Callable[[StageEvent], None] | None = None,
 ) -> tuple[Any, dict[str, Path]]:
     """``fricjax diagnose REC1 REC2 ...``: the diagnosis across recordings of one plant on
     their joint fit (:mod:`fricjax.diagnose.across`: shared catalogue terms judged by
@@ -550,8 +550,10 @@ def diagnose_recordings(
 
     ``overrides``: ``alpha``, ``max_terms``, ``time_limit`` from the command line (the
     ``[diagnose]`` table's ``alpha``, ``min_delta_bic``, ``max_terms``, ``time_limit``
-    otherwise); ``effects``: the catalogue entries to try (default all)."""
-    from fricjax.diagnose.across import Budget, diagnose_across, write_across
+    otherwise, ``[diagnose.stage_limits]`` where tighter than the defaults of
+    :mod:`fricjax.diagnose.across`); ``effects``: the catalogue entries to try (default
+    all); ``on_stage``: progress events, as for one recording."""
+    from fricjax.diagnose.across import across_clock, diagnose_across, write_across
     from fricjax.joint import JointSettings
 
     if len(recordings) < 2:
@@ -565,9 +567,8 @@ def diagnose_recordings(
     cfg = load_config(config)
     joint = JointSettings.from_config(cfg)
     ident, settings, limited = _diagnose_settings(cfg, overrides)
-    budget = Budget()
-    if limited:
-        budget.total = float(settings.time_limit)
+    total = float(settings.time_limit) if limited else None
+    clock = across_clock(settings.stage_limits, total, on_stage)
     recs = alike_recordings(recordings, mass=mass)
     problems = [build_problem(rec, cfg) for rec in recs]
     diag = diagnose_across(
@@ -578,8 +579,7 @@ def diagnose_recordings(
         min_delta_bic=settings.min_delta_bic,
         max_terms=settings.max_terms,
         effects=effects,
-        budget=budget,
-        on_stage=on_stage,
+        clock=clock,
     )
     return diag, write_across(diag, out)
 

@@ -556,7 +556,7 @@ def diagnose(
     Ctrl-C stops it within the fit in flight and writes what was judged (exit 3)."""
     from fricjax.api import config_or_default, diagnose_recording, enable_compilation_cache
     from fricjax.data.recording import read_recording
-    from fricjax.report.tables import fmt
+    from fricjax.report.tables import fmt, p_text
 
     if len(recordings) > 1:
         _diagnose_across(
@@ -593,7 +593,7 @@ def diagnose(
     elif not diag.findings:
         typer.echo("no missing physics found (residual consistent with noise)")
     for f in diag.findings:
-        typer.echo(f"{f['effect']}: p = {f['p_value']:.2g}, dBIC = {fmt(f['delta_bic'], 4)}")
+        typer.echo(f"{f['effect']}: {p_text(f['p_value'])}, dBIC = {fmt(f['delta_bic'], 4)}")
         typer.echo(f"  {f['explanation']}")
     before, after = diag.fit["before"], diag.fit["after"]
     typer.echo(
@@ -665,6 +665,7 @@ def _diagnose_across(
 ) -> None:
     """``diagnose REC1 REC2 ...``: the diagnosis across recordings (fricjax.diagnose.across)."""
     from fricjax.api import diagnose_recordings, enable_compilation_cache
+    from fricjax.report.tables import p_text
 
     if config is None:
         raise FricjaxError("--config: missing; a diagnosis across recordings needs one")
@@ -674,27 +675,25 @@ def _diagnose_across(
         )
     enable_compilation_cache()
 
-    def on_stage(stage: str, detail: str) -> None:
-        if not quiet:
-            typer.echo(f"{stage}: {detail}", err=True)
-
-    diag, paths = diagnose_recordings(
-        list(recordings),
-        config,
-        out=out,
-        mass=mass,
-        overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
-        on_stage=on_stage,
-    )
+    with _stage_progress(quiet) as on_stage:
+        diag, paths = diagnose_recordings(
+            list(recordings),
+            config,
+            out=out,
+            mass=mass,
+            overrides={"alpha": alpha, "max_terms": max_terms, "time_limit": time_limit},
+            on_stage=on_stage,
+        )
+    headline = diag.clock.headline()
+    if headline:
+        typer.echo(headline)  # before any verdict: the limit and what it left untested
     if not diag.findings:
         typer.echo("nothing found across the recordings (no shared term, no drift)")
     for f in diag.findings:
         typer.echo(
-            f"{f['name']} ({f['kind']}): p = {f['p_value']:.2g}, dBIC = {f['delta_bic']:.1f}"
+            f"{f['name']} ({f['kind']}): {p_text(f['p_value'])}, dBIC = {f['delta_bic']:.1f}"
         )
         typer.echo(f"  {f['explanation']}")
-    for item in diag.budget.skipped:
-        typer.echo(f"time limit at {item['stage']}: {item['what']}")
     typer.echo(f"report: {paths['report']}")
 
 

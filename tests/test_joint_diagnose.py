@@ -17,7 +17,7 @@ from fricjax.cli import main
 from fricjax.config import load_config
 from fricjax.data.recording import write_recording
 from fricjax.data.twin import AXIS_TRUTH, axis_twin, stroke_twin
-from fricjax.diagnose.across import Budget, diagnose_across, fit_joint, wald
+from fricjax.diagnose.across import across_clock, diagnose_across, fit_joint, wald
 from fricjax.identify import IdentifySettings
 from fricjax.joint import JointSettings
 from fricjax.problem import build_problem
@@ -179,11 +179,11 @@ def test_a_coulomb_level_moved_by_10_sigma_is_named_as_drift_where_it_moved(axis
 def test_a_time_limit_skips_the_rest_says_so_and_names_nothing_untested() -> None:
     problems, settings = stroke_problems(4.0)
     diag = diagnose_across(
-        problems, settings, JointSettings(), effects=EFFECTS, budget=Budget(total=0.0)
+        problems, settings, JointSettings(), effects=EFFECTS, clock=across_clock(total=0.0)
     )
     assert diag.findings == []  # the asymmetry is there, but it was never tested
     skipped = diag.to_json()["timing"]["skipped"]
-    assert [s["stage"] for s in skipped] == ["catalogue", "drift", "drift"]
+    assert [s["stage"] for s in skipped] == ["candidates", "drift", "drift"]
     assert all(s["limit"] == "total" for s in skipped)
     assert next(t for t in diag.tested if t["name"] == "asymmetric_friction")["verdict"] == (
         "not tested (time limit)"
@@ -196,7 +196,12 @@ def test_the_command_line_runs_it_and_bad_input_is_one_line(axis_runs, capsys) -
     out = folder / "cli"
     main(["diagnose", *same, "-c", str(AXIS_CONFIG), "--out", str(out), "--time-limit", "0.001"])
     text = capsys.readouterr().out
-    assert "time limit at drift: drift of Fc" in text and (out / "report.md").is_file()
+    # the limit comes first, in the single-record diagnosis' words
+    assert text.startswith("Time limit (0.001 s in all) hit at ")
+    assert "candidate(s) not tested: stribeck, asymmetric_friction" in text.splitlines()[0]
+    assert (out / "report.md").is_file()
+    saved = json.loads((out / "diagnosis.json").read_text(encoding="utf-8"))
+    assert "drift of Fc: not tested (time limit)" in [s["what"] for s in saved["timing"]["skipped"]]
     bad = folder / "bad.toml"
     bad.write_text(
         AXIS_CONFIG.read_text(encoding="utf-8") + "\n[diagnose]\nalpha = 2.0\n", encoding="utf-8"

@@ -70,11 +70,12 @@ for that run). On one-way strokes a shared asymmetry and a Coulomb level that di
 stroke give the same fit; the shared term is the smaller explanation (no new parameter
 per recording), and the finding notes the alternative.
 
-Time. The joint fit (``base_fit``) always runs; every later stage (``catalogue``,
-``heldout``, ``drift``) runs under its own limit and the total one, checked between units
-of work (one candidate's fit, one fold, one parameter's drift fit): a stage that hits a
-limit stops there, and what it left out is reported (:class:`Budget`); a candidate or
-parameter left untested is never named.
+Time. The stages and their clock are the single-record diagnosis'
+(:class:`~fricjax.diagnose.stages.Clock`): the joint fit (``base_fit``) always runs; every
+later stage (``candidates``, ``heldout``, ``drift``) runs under its own limit and the total
+one, checked between units of work (one candidate's fit, one fold, one parameter's drift
+fit): a stage that hits a limit stops there, and what it left out is reported; a candidate
+or parameter left untested is never named.
 """
 
 from __future__ import annotations
@@ -82,9 +83,9 @@ from __future__ import annotations
 import itertools
 import json
 import math
-import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+import threading
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -95,6 +96,7 @@ from scipy import stats
 from fricjax.diagnose.catalogue import CATALOGUE, Candidate, candidate
 from fricjax.diagnose.evidence import effective_dof, record_noise
 from fricjax.diagnose.run import jsonable
+from fricjax.diagnose.stages import Clock, OnStage
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings
 from fricjax.io.atomic import make_folder, write_text_atomic
@@ -113,9 +115,9 @@ from fricjax.residual_noise import stacked_noise
 
 __all__ = [
     "MAX_STARTS",
-    "STAGES",
+    "STAGE_LIMITS",
+    "TIME_LIMIT",
     "AcrossDiagnosis",
-    "Budget",
     "JointFit",
     "diagnose_across",
     "fit_joint",
@@ -128,14 +130,8 @@ __all__ = [
 MAX_STARTS = 16
 #: Seconds per stage (and in all) by default: an ordinary diagnosis of a few 1–30 s
 #: recordings stays well inside them on two shared cores; a limit acts only when hit.
-STAGE_LIMITS: dict[str, float] = {"catalogue": 300.0, "heldout": 300.0, "drift": 180.0}
+STAGE_LIMITS: dict[str, float] = {"candidates": 300.0, "heldout": 300.0, "drift": 180.0}
 TIME_LIMIT = 900.0
-STAGES: dict[str, str] = {
-    "base_fit": "joint fit of the config's model",
-    "catalogue": "joint fits of the model with each catalogue term",
-    "heldout": "leave-one-recording-out fits and predictions",
-    "drift": "joint fits with one parameter per recording",
-}
 #: A contrast is determined when its component along A's null directions is below this
 #: fraction of its norm (in the column-scaled coordinates of the SVD).
 _NULL_TOL = 1e-6
@@ -143,60 +139,22 @@ _SV_RCOND = 1e-10
 _OUTPUTS = ("diagnosis.json", "report.md")
 
 
-@dataclass
-class Budget:
-    """Wall time per stage and the time limits of one diagnosis across recordings.
-
-    ``limits``: seconds per stage (keys of :data:`STAGES`); ``total``: seconds in all;
-    ``now``: the clock [s] (a test may drive it). Work that a limit may cut asks
-    :meth:`over` first and records what it leaves out with :meth:`skip`."""
-
-    limits: Mapping[str, float] = field(default_factory=lambda: dict(STAGE_LIMITS))
-    total: float = TIME_LIMIT
-    now: Callable[[], float] = time.perf_counter
-    spent: dict[str, float] = field(default_factory=dict)
-    skipped: list[dict[str, Any]] = field(default_factory=list)
-    _start: float = math.nan
-    _stage: str = ""
-    _mark: float = 0.0
-
-    def __post_init__(self) -> None:
-        self._start = self._mark = self.now()
-
-    def elapsed(self) -> float:
-        return self.now() - self._start
-
-    def enter(self, stage: str) -> None:
-        """Charge the time so far to the open stage and open ``stage``."""
-        if stage not in STAGES:
-            raise ValueError(f"unknown stage {stage!r}")
-        t = self.now()
-        if self._stage:
-            self.spent[self._stage] = self.spent.get(self._stage, 0.0) + t - self._mark
-        self._stage, self._mark = stage, t
-
-    def hit(self, stage: str) -> str:
-        """Which limit stops more work at ``stage``: ``"total"``, ``stage`` or ``""``."""
-        if self.elapsed() > self.total:
-            return "total"
-        running = self.now() - self._mark if self._stage == stage else 0.0
-        if self.spent.get(stage, 0.0) + running > self.limits.get(stage, math.inf):
-            return stage
-        return ""
-
-    def skip(self, stage: str, what: str) -> None:
-        """Record ``what`` as left out at ``stage`` for lack of time."""
-        limit = self.hit(stage) or "total"
-        self.skipped.append({"stage": stage, "what": what, "at_s": self.elapsed(), "limit": limit})
-
-    def summary(self) -> dict[str, Any]:
-        self.enter(self._stage or "base_fit")
-        return {
-            "total_s": self.elapsed(),
-            "stages_s": dict(self.spent),
-            "limits_s": {"total": self.total, **dict(self.limits)},
-            "skipped": list(self.skipped),
-        }
+def across_clock(
+    stage_limits: Mapping[str, float] | None = None,
+    total: float | None = None,
+    on_stage: OnStage | None = None,
+    stop: threading.Event | None = None,
+) -> Clock:
+    """The clock of a diagnosis across recordings: :data:`STAGE_LIMITS` and
+    :data:`TIME_LIMIT` by default, a tighter ``stage_limits`` entry (``[diagnose]``) or
+    ``total`` where given."""
+    limits = {
+        k: min(STAGE_LIMITS.get(k, math.inf), (stage_limits or {}).get(k, math.inf))
+        for k in (*STAGE_LIMITS, *(stage_limits or {}))
+    }
+    return Clock(
+        limits=limits, total=TIME_LIMIT if total is None else total, on_stage=on_stage, stop=stop
+    )
 
 
 # -- joint fits ---------------------------------------------------------------------------
@@ -439,7 +397,7 @@ class AcrossDiagnosis:
     tested: list[dict[str, Any]]
     fit: dict[str, Any]
     settings: dict[str, Any]
-    budget: Budget
+    clock: Clock
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -449,7 +407,7 @@ class AcrossDiagnosis:
             "tested": self.tested,
             "fit": self.fit,
             "settings": self.settings,
-            "timing": self.budget.summary(),
+            "timing": self.clock.summary(),
         }
 
 
@@ -529,7 +487,7 @@ def _heldout(
     per_recording: Sequence[str],
     sigma: Sequence[float],
     cache: dict[int, tuple[JointFit, bool]],
-    budget: Budget,
+    clock: Clock,
     effect: str,
 ) -> dict[str, Any] | None:
     """Leave-one-recording-out gain of the term (module docstring); None when the time
@@ -538,8 +496,8 @@ def _heldout(
     total, judged = 0.0, 0
     names = [p.name for p in current]
     for k in range(len(current)):
-        if budget.hit("heldout"):
-            budget.skip("heldout", f"{effect}: leaving out {names[k]} (time limit)")
+        if clock.over("heldout"):
+            clock.skip("heldout", f"{effect}: leaving out {names[k]} (time limit)", effect)
             return None
         keep = [j for j in range(len(current)) if j != k]
         if k not in cache:
@@ -573,37 +531,32 @@ def diagnose_across(
     min_delta_bic: float = 10.0,
     max_terms: int = 3,
     effects: Sequence[str] | None = None,
-    budget: Budget | None = None,
-    on_stage: Callable[[str, str], None] | None = None,
+    clock: Clock | None = None,
 ) -> AcrossDiagnosis:
     """The diagnosis across ``problems`` (module docstring): joint fit, catalogue terms
     (shared, leave-one-recording-out), then drift of every base parameter that is shared.
 
-    ``effects``: the catalogue entries to try (default: all); ``budget``: the time limits;
-    ``on_stage(stage, detail)``: progress."""
+    ``effects``: the catalogue entries to try (default: all); ``clock``: stages, progress
+    and time limits (default :func:`across_clock`)."""
     if len(problems) < 2:
         raise FricjaxError("diagnose: a diagnosis across recordings needs at least two")
-    budget = budget or Budget()
-    say = on_stage or (lambda stage, detail: None)
+    clock = clock or across_clock()
     cands = [candidate(e) for e in effects] if effects is not None else list(CATALOGUE)
     evidence = [record_noise(p) for p in problems]
     nu = min(effective_dof(e.noise) for e in evidence)
     per = tuple(joint.per_recording)
 
-    budget.enter("base_fit")
-    say("base_fit", STAGES["base_fit"])
-    run = identify_joint(problems, identify_settings, joint)
-    sigma = [float(m["sigma"]) for m in json.loads(str(run.attrs["members"]))]
-    current = list(problems)
-    jp0 = joint_problem(current, per, sigma)
-    fit = fit_joint(
-        current, per, sigma, _theta_for(jp0, dict(zip(run.names, run.value, strict=True)))[None]
-    )
+    with clock.stage("base_fit", "joint fit of the config's model"):
+        run = identify_joint(problems, identify_settings, joint)
+        sigma = [float(m["sigma"]) for m in json.loads(str(run.attrs["members"]))]
+        current = list(problems)
+        jp0 = joint_problem(current, per, sigma)
+        theta0 = _theta_for(jp0, dict(zip(run.names, run.value, strict=True)))
+        fit = fit_joint(current, per, sigma, theta0[None])
     base_fit = fit
     bar = float(min_delta_bic)
 
     # catalogue: forward selection of shared terms ------------------------------------
-    budget.enter("catalogue")
     tested: list[dict[str, Any]] = []
     findings: list[dict[str, Any]] = []
     pool = [c for c in cands if _extend(current, c) is not None]
@@ -616,41 +569,39 @@ def diagnose_across(
         if not pool:
             break
         round_records = []
-        for c in pool:
-            budget.enter("catalogue")
-            if budget.hit("catalogue"):
-                budget.skip("catalogue", f"{c.effect}: not tested (time limit)")
-                round_records.append(
-                    (
-                        {"kind": "term", "name": c.effect, "verdict": "not tested (time limit)"},
-                        None,
-                        None,
-                        c,
-                    )
-                )
-                continue
-            say("catalogue", f"{c.effect} added to the joint model")
-            rec, ext, tfit = _judge_term(c, current, fit, per, sigma, nu, n_tests, alpha, bar)
-            round_records.append((rec, ext, tfit, c))
+        with clock.stage("candidates", "joint fits of the model with each catalogue term"):
+            for c in pool:
+                if clock.over("candidates"):
+                    clock.untested("candidates", c.effect)
+                    untested = {
+                        "kind": "term",
+                        "name": c.effect,
+                        "verdict": "not tested (time limit)",
+                    }
+                    round_records.append((untested, None, None, c))
+                    continue
+                clock.note(f"{c.effect} added to the joint model")
+                rec, ext, tfit = _judge_term(c, current, fit, per, sigma, nu, n_tests, alpha, bar)
+                round_records.append((rec, ext, tfit, c))
         passing = sorted(
             (r for r in round_records if r[0]["verdict"] == "passes p and ΔBIC"),
             key=lambda r: -r[0]["rank"],
         )
         chosen = None
-        budget.enter("heldout")
-        for rec, ext, tfit, c in passing:
-            say("heldout", f"{c.effect}: leaving one recording out")
-            held = _heldout(current, ext, fit, tfit, per, sigma, fold_cache, budget, c.effect)
-            rec["heldout"] = held
-            if held is None:
-                rec["verdict"] = "held-out check cut by the time limit"
-                continue
-            if held["judged"] and not held["gain"] > 0:
-                rec["verdict"] = "no held-out gain"
-                continue
-            rec["verdict"] = "named"
-            chosen = (rec, ext, tfit, c)
-            break
+        with clock.stage("heldout", "leave-one-recording-out fits and predictions"):
+            for rec, ext, tfit, c in passing:
+                clock.note(f"{c.effect}: leaving one recording out")
+                held = _heldout(current, ext, fit, tfit, per, sigma, fold_cache, clock, c.effect)
+                rec["heldout"] = held
+                if held is None:
+                    rec["verdict"] = "held-out check cut by the time limit"
+                    continue
+                if held["judged"] and not held["gain"] > 0:
+                    rec["verdict"] = "no held-out gain"
+                    continue
+                rec["verdict"] = "named"
+                chosen = (rec, ext, tfit, c)
+                break
         if chosen is None:
             tested.extend(r[0] for r in round_records)
             break
@@ -668,36 +619,40 @@ def diagnose_across(
         current, fit, fold_cache = ext, tfit, {}
 
     # drift: one value per recording of a shared base parameter, forward as the terms ----
-    budget.enter("drift")
-    drift_names = [n for n in problems[0].spec.free_names if n not in per]
-    remaining, layout = list(drift_names), per
-    while remaining:
-        records = []
-        for name in remaining:
-            if budget.hit("drift"):
-                budget.skip("drift", f"drift of {name}: not tested (time limit)")
+    with clock.stage("drift", "joint fits with one parameter per recording"):
+        drift_names = [n for n in problems[0].spec.free_names if n not in per]
+        remaining, layout = list(drift_names), per
+        while remaining:
+            records = []
+            for name in remaining:
+                if clock.over("drift"):
+                    clock.skip("drift", f"drift of {name}: not tested (time limit)")
+                    records.append(
+                        (
+                            {"kind": "drift", "name": name, "verdict": "not tested (time limit)"},
+                            None,
+                        )
+                    )
+                    continue
+                clock.note(f"{name} one value per recording")
                 records.append(
-                    ({"kind": "drift", "name": name, "verdict": "not tested (time limit)"}, None)
+                    _drift(name, current, fit, layout, sigma, nu, len(drift_names), alpha, bar)
                 )
-                continue
-            say("drift", f"{name} one value per recording")
-            records.append(
-                _drift(name, current, fit, layout, sigma, nu, len(drift_names), alpha, bar)
-            )
-        named = [r for r in records if r[0]["verdict"] == "named"]
-        if not named:
-            tested.extend(r[0] for r in records)
-            break
-        rec, dfit = max(named, key=lambda r: r[0]["rank"])
-        for other, _ in named:
-            if other is not rec:
-                other["verdict"] = f"passes; {name_of(rec)} explains more (tested again beside it)"
-        tested.extend(r[0] for r in records if r[0] is not rec)
-        tested.append(rec)
-        findings.append(rec)
-        remaining.remove(rec["name"])
-        layout, fit = (*layout, rec["name"]), dfit
-    budget.enter("drift")
+            named = [r for r in records if r[0]["verdict"] == "named"]
+            if not named:
+                tested.extend(r[0] for r in records)
+                break
+            rec, dfit = max(named, key=lambda r: r[0]["rank"])
+            for other, _ in named:
+                if other is not rec:
+                    other["verdict"] = (
+                        f"passes; {name_of(rec)} explains more (tested again beside it)"
+                    )
+            tested.extend(r[0] for r in records if r[0] is not rec)
+            tested.append(rec)
+            findings.append(rec)
+            remaining.remove(rec["name"])
+            layout, fit = (*layout, rec["name"]), dfit
 
     recordings = [
         {
@@ -725,7 +680,7 @@ def diagnose_across(
         "per_recording": list(per),
         "effects": [c.effect for c in cands],
     }
-    return AcrossDiagnosis(recordings, findings, tested, summary, settings, budget)
+    return AcrossDiagnosis(recordings, findings, tested, summary, settings, clock)
 
 
 def name_of(record: Mapping[str, Any]) -> str:

@@ -22,7 +22,7 @@ from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.params import on_bound
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
 from fricjax.report.plots import plt, save
-from fricjax.report.tables import fmt
+from fricjax.report.tables import fmt, p_text
 
 if TYPE_CHECKING:
     from fricjax.diagnose.judge import CandidateFit
@@ -210,7 +210,7 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
             )
             blocks.append(
                 Para(
-                    f"ΔBIC {f['delta_bic']:.1f}, p = {f['p_value']:.2g}; held out: {held}; "
+                    f"ΔBIC {f['delta_bic']:.1f}, {p_text(f['p_value'])}; held out: {held}; "
                     f"record EMS {_pct(f['record_ems_gain'])}, simulation error "
                     f"{_pct(f['record_simulation_gain'])} better."
                 )
@@ -248,7 +248,7 @@ def _candidate_row(st: Step, f: CandidateFit) -> tuple[str, ...]:
         str(f.k),
         str(f.looks),
         f"{f.lr:.1f}",
-        f"{f.p_value:.2g}",
+        p_text(f.p_value).removeprefix("p = "),
         f"{f.delta_bic:.1f}",
         decision,
     )

@@ -29,10 +29,11 @@ STAGES: dict[str, str] = {
     "base_fit": "base fit (identify, then output error from its estimate)",
     "candidates": "every candidate's starts and output-error fits",
     "heldout": "record gains and held-out checks of the candidates that pass",
+    "drift": "across recordings: joint fits with one parameter per recording",
     "report": "report, plots and models file",
 }
 # the stages whose work a limit can cut (the others are a single step the diagnosis needs)
-LIMITED = ("candidates", "heldout")
+LIMITED = ("candidates", "heldout", "drift")
 #: Default seconds for a whole diagnosis (``DiagnoseSettings.time_limit``): the bound a
 #: user waits for on any recording up to 30 s. Here, beside the clock, so that the
 #: command line can show it without importing the diagnosis.

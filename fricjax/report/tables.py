@@ -6,6 +6,7 @@ Table 4 (EMS), one column per method/run; we add omega, truth and error columns.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 #: The seed's published values (Tables 1-4), by method, for side-by-side reports.
@@ -83,6 +84,12 @@ def fmt(value: float | None, digits: int = 5) -> str:
     if value != value:  # NaN
         return "nan"
     return f"{value:.{digits}g}"
+
+
+def p_text(p: float) -> str:
+    """``"p = 0.0012"``, or ``"p < 1e-300"`` where the p-value underflows a double (it is
+    then no more zero than any other tiny probability)."""
+    return f"p = {p:.2g}" if p >= 1e-300 or math.isnan(p) else "p < 1e-300"
 
 
 def format_table(rows: Sequence[Sequence[str]], header: Sequence[str] | None = None) -> str:
