@@ -81,10 +81,16 @@ def undetermined(run: RunResult) -> dict[str, str]:
         if not np.isfinite(sd):
             reasons.append("not determined at all (no curvature of the cost along it)")
         elif scale > 0.0 and sd > LOOSE_SIGMA * scale:
-            reasons.append(f"±2σ = ±{fmt(2 * sd, 3)} {unit}, {100 * 2 * sd / scale:.0f} % of it")
+            reasons.append(f"±2σ = ±{fmt(2 * sd, 3)} {unit}, {share(2 * sd / scale)}")
         if reasons:
             out[name] = "; ".join(reasons)
     return out
+
+
+def share(ratio: float) -> str:
+    """A ratio to a value ("it") in words a person reads: ``"35 % of it"`` up to 10, then
+    ``"4.2e+03 times it"`` (a percentage of sixteen digits says no more than "far larger")."""
+    return f"{100 * ratio:.0f} % of it" if ratio < 10 else f"{ratio:.2g} times it"
 
 
 def correlated_pairs(run: RunResult) -> list[tuple[str, str, float]]:

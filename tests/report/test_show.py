@@ -43,3 +43,11 @@ def test_the_twin_summary_names_the_friction_parameters_the_record_leaves_open(
         assert cure in text
     # the well-determined large harmonics and omega are not accused
     assert "omega" not in loose and "Fp_9" not in loose
+
+
+def test_a_huge_uncertainty_reads_as_a_multiple_not_sixteen_digits() -> None:
+    from fricjax.report.show import share
+
+    assert share(0.353) == "35 % of it"
+    assert share(9.9) == "990 % of it"
+    assert share(96239682103748.58) == "9.6e+13 times it"
