@@ -84,6 +84,7 @@ def test_printed_outputs_compare_words_exactly_and_numbers_to_a_tolerance() -> N
     assert not same("EMS 8.51 N²", "EMS 9.51 N²")
     assert not same("impact: p = 0.01", "stribeck: p = 0.01")
     assert not same("a 1 b", "a 1 b 2")
+    assert same("wall time [s]  7.20\nEMS 8.5", "wall time [s]  13.32\nEMS 8.5")
 
 
 def test_the_user_guide_marks_its_printed_outputs() -> None:
