@@ -126,16 +126,23 @@ def run_case(
     if folder.exists():  # a partial case: cleared, run again
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
+
+    def here(path: Path) -> str:
+        # the process runs in ROOT: paths relative to it keep this machine out of the
+        # committed run files
+        path = Path(path).resolve()
+        return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
     cmd = [
         sys.executable,
         "-c",
         "import sys; from fricjax.cli import main; sys.argv[0] = 'fricjax'; main()",
         "diagnose",
-        str(recording),
+        here(recording),
         "--config",
-        str(config),
+        here(config),
         "--out",
-        str(folder),
+        here(folder),
         *(["--time-limit", f"{time_limit:g}"] if time_limit else []),
     ]
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
