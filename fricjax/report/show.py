@@ -161,15 +161,33 @@ def _determination(
     *,
     fits: bool,
 ) -> list[str]:
+    # a table flag measures σ against the value itself; near zero that says nothing of
+    # how well the record pins a signed parameter, which ``undetermined`` judges against
+    # its box: say so rather than leave the flag and the verdict to contradict each other
+    near_zero = [
+        n
+        for n, f in zip(run.names, run.flags, strict=True)
+        if n not in loose and any(x.startswith("weakly determined") for x in f)
+    ]
+    zero_note = (
+        [
+            f"{', '.join(near_zero)}: flagged because the value is near zero, not because the "
+            "record leaves it loose (σ is small against its box); read it as the value ± σ."
+        ]
+        if near_zero
+        else []
+    )
     if not loose and not pairs and not fits:
         return [
             f"Under this model, {record} pins every parameter (±2σ within "
-            f"±{200 * LOOSE_SIGMA:.0f} % of its value, none on a bound)."
+            f"±{200 * LOOSE_SIGMA:.0f} % of its value, none on a bound).",
+            *zero_note,
         ]
     if not loose and not pairs:
         return [
             f"Every parameter is determined by {record} (±2σ within ±{200 * LOOSE_SIGMA:.0f} %"
-            " of its value, none on a bound)."
+            " of its value, none on a bound).",
+            *zero_note,
         ]
     lines = []
     if loose:

@@ -51,3 +51,24 @@ def test_a_huge_uncertainty_reads_as_a_multiple_not_sixteen_digits() -> None:
     assert share(0.353) == "35 % of it"
     assert share(9.9) == "990 % of it"
     assert share(96239682103748.58) == "9.6e+13 times it"
+
+
+def test_a_signed_parameter_near_zero_is_not_both_flagged_and_called_determined() -> None:
+    # the rotary load-cell axis of tests/test_scaffold.py: offset 0.0063 ± 0.0067 N·m in a
+    # box of ±38.6 N·m; the table flags it (σ against the value), the verdict judges it
+    # against its box, and the summary says why the two differ
+    import numpy as np
+
+    run = RunResult(
+        label="csaa", method="csaa", names=["offset", "Fc"], units=["N·m", "N·m"],
+        value=np.array([0.0063, 14.83]), lower=np.array([-38.6, 0.0]),
+        upper=np.array([38.6, 38.6]), fixed={}, cost=1.0, ems=1.0, cost_search=1.0,
+        ems_search=1.0, std=np.array([0.0067, 0.017]), rel_std=np.array([1.06, 0.0012]),
+        corr=np.eye(2), flags=[["weakly determined (rel. σ = 1.06 > 1)"], []],
+        chain_x=np.zeros((1, 2)), chain_cost=np.zeros(1), traces={},
+        minima_x=np.zeros((1, 2)), minima_cost=np.zeros(1), minima_count=np.ones(1),
+    )  # fmt: skip
+    assert undetermined(run) == {}
+    words = determination(run)
+    assert words.startswith("Every parameter is determined by this record")
+    assert "offset: flagged because the value is near zero" in words
