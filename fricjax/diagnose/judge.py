@@ -374,14 +374,20 @@ def fit_rows(
     states: Sequence[tuple[np.ndarray, np.ndarray]],
     k: int,
     samples: Sequence[np.ndarray] | None = None,
+    more: Callable[[], bool] | None = None,
 ) -> list[OutputErrorFit]:
     """The rows fitted as ONE program (:func:`fit_output_error_batch`), padded to
     :func:`_padded` rows; the fits of the given rows, in order. ``samples``: each row's
-    held-out mask (1 fitted, 0 held out), default every sample."""
+    held-out mask (1 fitted, 0 held out), default every sample. ``more()``: asked before
+    every call after the first where the rows take several calls (a CPU: one row a call);
+    once it says no, the fits so far are returned, fewer than the rows (a time limit or
+    Ctrl-C then waits for one row's fit, not for the whole batch)."""
     lanes = lanes_per_call()
     if len(rows) > lanes:
         out: list[OutputErrorFit] = []
         for i in range(0, len(rows), lanes):
+            if i and more is not None and not more():
+                break
             part = slice(i, i + lanes)
             out += fit_rows(
                 problem,
@@ -423,15 +429,17 @@ def converged_rows(
     settings: OutputErrorSettings,
     k: int,
     samples: Sequence[np.ndarray] | None = None,
+    more: Callable[[], bool] | None = None,
 ) -> list[OutputErrorFit]:
     """Each of ``fits`` restarted from its end, all in one batch per round, until a round
     gains less than :data:`CONVERGED` (:func:`converged`, row by row; at most
-    :data:`MAX_ROUNDS` rounds in all)."""
+    :data:`MAX_ROUNDS` rounds in all). ``more()``: as in :func:`fit_rows`; once it says no,
+    each fit is the best reached so far."""
     spec = problem.spec
     best = list(fits)
     open_ = list(range(len(best)))
     for _ in range(MAX_ROUNDS - 1):
-        if not open_:
+        if not open_ or (more is not None and not more()):
             break
         again = fit_rows(
             problem,
@@ -441,9 +449,10 @@ def converged_rows(
             [(best[i].states_x, best[i].states_v) for i in open_],
             k,
             None if samples is None else [samples[i] for i in open_],
+            more,
         )
         still = []
-        for i, fit in zip(open_, again, strict=True):
+        for i, fit in zip(open_, again, strict=False):
             if best[i].cost - fit.cost >= CONVERGED:
                 still.append(i)
             if fit.cost < best[i].cost:
@@ -457,10 +466,13 @@ def fit_candidates(
     candidates: Sequence[tuple[str, Sequence[Mapping[str, float]]]],
     settings: OutputErrorSettings,
     nu: int,
+    more: Callable[[], bool] | None = None,
 ) -> list[CandidateFit]:
     """Every candidate ``(effect, starts)`` fitted by output error from ``base``'s optimum
     (amplitudes at their null, nonlinear parameters at each start), judged against ``base``
     (module docstring). The one place where the candidates' output-error fits run.
+    ``more()``: asked between calls (:func:`fit_rows`); a candidate none of whose starts
+    was fitted before it said no is left out of the result (untested).
 
     One program per round: every (candidate, start) is a row of one batch of the superset
     model, its fitted parameters (the base's and the candidate's own) chosen by the row's
@@ -488,12 +500,12 @@ def fit_candidates(
     if not rows:
         return []
     best: dict[str, OutputErrorFit] = {}
-    first = fit_rows(sup.problem, rows, masks, settings, [states] * len(rows), k_step)
-    for effect, fit in zip(owner, first, strict=True):
+    first = fit_rows(sup.problem, rows, masks, settings, [states] * len(rows), k_step, more=more)
+    for effect, fit in zip(owner, first, strict=False):
         if effect not in best or fit.cost < best[effect].cost:
             best[effect] = fit
     ends = converged_rows(
-        sup.problem, list(best.values()), [mask_of[e] for e in best], settings, k_step
+        sup.problem, list(best.values()), [mask_of[e] for e in best], settings, k_step, more=more
     )
     best = dict(zip(best, ends, strict=True))
     out = []

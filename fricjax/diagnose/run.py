@@ -340,7 +340,12 @@ def decide(
                     continue
                 todo.append((effect, starts(current, effect, band, settings.n_starts)))
         with clock.stage("candidates", f"output-error fits of {len(todo)} candidates"):
-            fits = fit_candidates(current, todo, oe, evidence.nu) if todo else []
+            more = lambda: not clock.over("candidates")  # noqa: E731
+            fits = fit_candidates(current, todo, oe, evidence.nu, more) if todo else []
+            fitted = {f.effect for f in fits}
+            for effect, _ in todo:
+                if effect not in fitted:  # the limit (or Ctrl-C) came first
+                    clock.untested("candidates", effect)
         limit = settings.alpha / len(cands)
         passing = sorted(
             (f for f in fits if f.passes(limit, settings.min_delta_bic)),

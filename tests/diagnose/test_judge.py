@@ -241,3 +241,33 @@ def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> No
     fit = judge.converged(None, None, {}, None, more=lambda need: seen.append(need) or False)
     assert calls == [100.0] and fit.cost == 100.0
     assert len(seen) == 1 and seen[0] >= 0.0
+
+
+def test_a_limit_stops_the_rows_between_calls_not_after_the_batch(monkeypatch) -> None:
+    """On a CPU the rows of a step run one call each: a time limit or Ctrl-C (``more()``
+    saying no) ends the batch after the row in flight, and the rounds of restarts stop
+    with each fit at its best so far."""
+    import fricjax.diagnose.judge as judge
+
+    calls: list[int] = []
+
+    def fake_batch(problem, rows, free, settings, states, k, held=None):
+        calls.append(len(rows))
+        return [SimpleNamespace(cost=float(r[0]), params={}, states_x=0, states_v=0) for r in rows]
+
+    monkeypatch.setattr(judge, "lanes_per_call", lambda: 1)
+    monkeypatch.setattr(judge, "fit_output_error_batch", fake_batch)
+    rows = [np.array([float(c)]) for c in (5, 4, 3, 2, 1)]
+    state = (np.zeros(1), np.zeros(1))
+    budget = iter([True, False])  # asked before the 2nd and the 3rd call
+    fits = judge.fit_rows(None, rows, [None] * 5, None, [state] * 5, 1, more=lambda: next(budget))
+    assert [f.cost for f in fits] == [5.0, 4.0] and calls == [1, 1]
+    # without a limit every row runs
+    calls.clear()
+    assert len(judge.fit_rows(None, rows, [None] * 5, None, [state] * 5, 1)) == 5
+    # restarts: none once the limit is hit, the fits kept as they were
+    spec = SimpleNamespace(flatten=lambda params: np.array([0.0]))
+    problem = SimpleNamespace(spec=spec)
+    calls.clear()
+    kept = judge.converged_rows(problem, fits, [None] * 2, None, 1, more=lambda: False)
+    assert kept == fits and calls == []
