@@ -111,6 +111,7 @@ from fricjax.joint import (
 from fricjax.params import Param
 from fricjax.problem import Problem
 from fricjax.refine import RefineSettings, refine_many, value_and_jacobian
+from fricjax.report.tables import p_text
 from fricjax.residual_noise import stacked_noise
 
 __all__ = [
@@ -831,7 +832,7 @@ def report_markdown(diag: AcrossDiagnosis) -> str:
     for f in d["findings"]:
         lines.append(f"- **{f['name']}** ({f['kind']}): {f['explanation']}")
         lines.append(
-            f"  W = {f['statistic']:.2f} ({f['dof']} dof), p = {f['p_value']:.3g} "
+            f"  W = {f['statistic']:.2f} ({f['dof']} dof), {p_text(f['p_value'])} "
             f"(bar {f['p_threshold']:.3g}), ΔBIC = {f['delta_bic']:.1f}"
         )
         for fold in (f.get("heldout") or {}).get("folds", []):

@@ -224,7 +224,7 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
                         f"Or `{a['effect']}` ({where_text(a['location'])}; {shown}): ΔBIC "
                         f"{a['delta_bic']:.1f}; the record does not prefer "
                         f"`{f['effect']}` over it (Vuong t = {a['vuong_t']:.2f}, "
-                        f"p = {a['vuong_p']:.2g})."
+                        f"{p_text(a['vuong_p'])})."
                     )
                 )
     return blocks

@@ -62,6 +62,7 @@ from fricjax.identify import IdentifySettings, identify
 from fricjax.output_error import OutputErrorSettings
 from fricjax.params import at_bounds
 from fricjax.problem import Problem
+from fricjax.report.tables import p_text
 
 #: Seconds a stage may take by default (``[diagnose.stage_limits]``).
 STAGE_LIMITS = dict.fromkeys(LIMITED, math.inf)
@@ -642,7 +643,7 @@ def _unexplained(model: Fitted, p: float, nu: int) -> dict[str, Any]:
         "effect": "unexplained",
         "explanation": (
             f"The model leaves more output error than the record's noise accounts for "
-            f"({f.cost:.4g} σ_x² over {dof} degrees of freedom, p = {p:.2g}), and no catalogue "
+            f"({f.cost:.4g} σ_x² over {dof} degrees of freedom, {p_text(p)}), and no catalogue "
             f"term explains it. It misfits most over t = {pb.t[idx[0]]:.4g} to "
             f"{pb.t[idx[-1]]:.4g} s ({per[s]:.3g} σ_x² per sample there; the record is "
             f"{float(pb.t[-1] - pb.t[0]):.3g} s long)."
