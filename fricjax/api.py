@@ -509,8 +509,8 @@ def diagnose_recording(
     from fricjax.diagnose.report import OUTPUT_FILES, write_diagnosis
     from fricjax.diagnose.run import diagnose
 
-    source = recording.path or recording.name if isinstance(recording, Recording) else recording
-    config_path = config.source or None if isinstance(config, Config) else config
+    source = (recording.path or recording.name) if isinstance(recording, Recording) else recording
+    config_path = (config.source or None) if isinstance(config, Config) else config
     check_outputs(
         [Path(out) / name for name in OUTPUT_FILES],
         {"recording": source, "--config": config_path, "--validation": validation},

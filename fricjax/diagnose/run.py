@@ -341,7 +341,10 @@ def decide(
                     continue
                 todo.append((effect, starts(current, effect, band, settings.n_starts)))
         with clock.stage("candidates", f"output-error fits of {len(todo)} candidates"):
-            more = lambda: not clock.over("candidates")  # noqa: E731
+
+            def more() -> bool:
+                return not clock.over("candidates")
+
             fits = fit_candidates(current, todo, oe, evidence.nu, more) if todo else []
             fitted = {f.effect for f in fits}
             for effect, _ in todo:
