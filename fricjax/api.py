@@ -665,6 +665,97 @@ def simulate_recording(
     return report
 
 
+def parse_limits(text: str | None, problem: Problem) -> Any:
+    """``--limits F_max,x_range,v_max``: peak input [unit of u] (the input then stays in
+    ±F_max), travel ("lo:hi" [m], or a length [m] centred on the record's travel) and
+    peak speed [m/s]; an empty field keeps what the record did."""
+    from fricjax.design import record_limits
+
+    own = record_limits(problem)
+    if text is None:
+        return own
+    fields = text.split(",")
+    if len(fields) != 3:
+        raise FricjaxError(
+            f"--limits: {text!r}: give F_max,x_range,v_max (empty keeps the record's)"
+        )
+
+    def number(field: str, what: str) -> float:
+        try:
+            value = float(field)
+        except ValueError:
+            raise FricjaxError(f"--limits: {what} {field!r} is not a number") from None
+        if not math.isfinite(value) or value <= 0:
+            raise FricjaxError(f"--limits: {what} {field!r} must be finite and > 0")
+        return value
+
+    force, travel, speed = (f.strip() for f in fields)
+    if force:
+        own = own._replace(u_mid=0.0, u_peak=number(force, "F_max"))
+    if travel:
+        if ":" in travel:
+            lo, hi = (float(v) if v.strip() else math.nan for v in travel.split(":", 1))
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise FricjaxError(f"--limits: x_range {travel!r}: give lo:hi with lo < hi [m]")
+        else:
+            half, mid = 0.5 * number(travel, "x_range"), 0.5 * (own.x_lo + own.x_hi)
+            lo, hi = mid - half, mid + half
+        if not lo <= float(problem.x[0]) <= hi:
+            raise FricjaxError(
+                f"--limits: x_range {travel!r} excludes the start position {problem.x[0]:.4g} m"
+            )
+        own = own._replace(x_lo=lo, x_hi=hi)
+    if speed:
+        own = own._replace(speed=number(speed, "v_max"))
+    return own
+
+
+def design_test(
+    recording: str | Path | Recording,
+    config: str | Path | Config,
+    diagnosis: str | Path,
+    *,
+    out: str | Path | None = None,
+    candidates: list[str] | None = None,
+    limits: str | None = None,
+    duration: float | None = None,
+    settings: Any = None,
+    mass: float | None = None,
+) -> tuple[Any, dict[str, Path]]:
+    """``fricjax design``: the next test's input profile that best separates the models of
+    a diagnosis' ambiguity set (or ``candidates``: "base" and catalogue names) on this rig
+    (:mod:`fricjax.design`); writes ``out`` (CSV), its .png and .json when given.
+
+    Returns:
+        (:class:`~fricjax.design.Design`, the paths written).
+    """
+    from fricjax.design import DesignSettings, commanded_input, design, read_rivals
+    from fricjax.report.design import design_files, write_design
+
+    source = (recording.path or recording.name) if isinstance(recording, Recording) else recording
+    if out is not None:
+        config_path = (config.source or None) if isinstance(config, Config) else config
+        check_outputs(
+            list(design_files(out).values()),
+            {"recording": source, "--config": config_path},
+            "--out",
+        )
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise FricjaxError(f"--duration: {duration} must be finite and > 0 [s]")
+    _, _, problem = load(recording, config, mass=mass)
+    commanded_input(problem)
+    rivals, sigma = read_rivals(diagnosis, problem, candidates)
+    result = design(
+        problem,
+        rivals,
+        sigma,
+        limits=parse_limits(limits, problem),
+        duration=duration,
+        settings=settings or DesignSettings(),
+    )
+    return result, ({} if out is None else write_design(result, out))
+
+
 def fleet_recordings(
     recordings: list[str | Path],
     config: str | Path,

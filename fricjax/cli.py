@@ -697,6 +697,80 @@ def _diagnose_across(
     typer.echo(f"report: {paths['report']}")
 
 
+@app.command()
+def design(
+    recording: RecArg,
+    config: ConfigOpt,
+    diagnosis: Annotated[
+        Path, typer.Option(help="Folder of a diagnosis of RECORDING (its models.h5)")
+    ],
+    out: Annotated[
+        Path, typer.Option(help="The profile to run (CSV; .png and .json beside)")
+    ] = Path("next_test.csv"),
+    candidates: Annotated[
+        str | None,
+        typer.Option(
+            help="Models to separate, comma-separated: 'base' and catalogue names "
+            "(default: the diagnosis' first ambiguity set)"
+        ),
+    ] = None,
+    limits: Annotated[
+        str | None,
+        typer.Option(
+            help="F_max,x_range,v_max: peak input [unit of u], travel (lo:hi or a length) "
+            "[m], peak speed [m/s]; an empty field keeps what the record did"
+        ),
+    ] = None,
+    duration: Annotated[
+        float | None, typer.Option(help="Length of the new test [s] (default the record's)")
+    ] = None,
+    starts: Annotated[
+        int | None,
+        typer.Option(
+            help="Optimiser starts in one batch, the first two a chirp and the record's "
+            "input (default: fricjax.design.DesignSettings)",
+            min=1,
+        ),
+    ] = None,
+    steps: Annotated[
+        int | None,
+        typer.Option(help="Gradient steps per start (default: DesignSettings)", min=1),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="PRNG seed of the starts", **SEED_RANGE)] = 0,
+    mass: MassOpt = None,
+) -> None:
+    """Design the next test: an input profile within the rig's limits under which the
+    diagnosis' rival models predict motions that differ most, in the record's noise, after
+    each has refitted what it can (docs/design.md)."""
+    from fricjax.api import design_test, enable_compilation_cache
+    from fricjax.design import DesignSettings
+    from fricjax.report.design import format_design
+
+    enable_compilation_cache()
+    names = None
+    if candidates is not None:
+        names = [c.strip() for c in candidates.split(",") if c.strip()]
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    with console.status("designing the test: one batch of starts, by gradient"):
+        result, paths = design_test(
+            recording,
+            config,
+            diagnosis,
+            out=out,
+            candidates=names,
+            limits=limits,
+            duration=duration,
+            settings=DesignSettings(
+                **{k: v for k, v in {"starts": starts, "steps": steps}.items() if v}, seed=seed
+            ),
+            mass=mass,
+        )
+    typer.echo(format_design(result))
+    typer.echo(f"files: {', '.join(str(p) for p in paths.values())}")
+
+
 @app.command("init-config")
 def init_config_cmd(
     recording: RecArg,

@@ -189,6 +189,18 @@ class Fitted:
         """E at the optimum [σ_x²]."""
         return float(self.fit.cost)
 
+    def covariance(self, names: Sequence[str]) -> np.ndarray:
+        """[k, k] Gauss–Newton covariance of the named fitted parameters (SI units²), from
+        the fit's σ and correlations; a name the fit did not move gets σ = 0."""
+        where = {n: i for i, n in enumerate(self.fit.names)}
+        idx = np.array([where.get(n, -1) for n in names], dtype=int)
+        ok = idx >= 0
+        std = np.where(ok, np.asarray(self.fit.std)[np.maximum(idx, 0)], 0.0)
+        corr = np.eye(len(idx))
+        corr[np.ix_(ok, ok)] = np.asarray(self.fit.corr)[np.ix_(idx[ok], idx[ok])]
+        np.fill_diagonal(corr, 1.0)
+        return corr * np.outer(std, std)
+
     def reduced(self) -> tuple[Model, ParamSpec, np.ndarray]:
         """(model, spec, θ) of base + the active terms alone, for files a user reads."""
         model, spec = self.superset.record.model, self.superset.record.spec

@@ -25,7 +25,7 @@ from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt, p_text
 
 if TYPE_CHECKING:
-    from fricjax.diagnose.judge import CandidateFit
+    from fricjax.diagnose.judge import CandidateFit, Fitted
     from fricjax.diagnose.run import Diagnosis, Step
 
 _PLACES = {
@@ -344,15 +344,37 @@ def _write_models(diag: Diagnosis, path: Path) -> Path:
     def fill(f: h5py.File) -> None:
         f.attrs["format"] = "fricjax-diagnosis-models-v1"
         f.attrs["recording"] = diag.recording
+        f.attrs["sigma_x_m"] = diag.evidence.sigma_x
+        f.attrs["n_samples"] = diag.problem.n
         for label, m in (("base", diag.base), ("final", diag.final)):
-            model, spec, theta = m.reduced()
-            g = f.create_group(label)
-            g.attrs["model"] = model.name
-            g.attrs["terms"] = json.dumps([t.name for t in model.terms])
-            named = spec.as_dict(theta)
-            g["names"] = np.array(list(named), dtype=h5py.string_dtype())
-            g["values"] = np.array(list(named.values()), dtype=np.float64)
-            g["free"] = np.array([spec[n].free for n in named], dtype=bool)
-            g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
+            _write_fitted(f.create_group(label), m)
+        # every model each step compared, so that a next test can be designed to tell any
+        # of them apart (fricjax design) without refitting them
+        for i, step in enumerate(diag.steps):
+            g = f.create_group(f"steps/{i}")
+            chosen = step.chosen
+            g.attrs["named"] = chosen.fit.effect if chosen is not None else ""
+            _write_fitted(g.create_group("base"), step.current)
+            for cf in step.fits:
+                sub = g.create_group(cf.effect)
+                _write_fitted(sub, cf.fitted)
+                sub.attrs["delta_bic"] = cf.delta_bic
+                sub.attrs["p_value"] = cf.p_value
 
     return write_hdf5_atomic(path, fill)
+
+
+def _write_fitted(g: h5py.Group, m: Fitted) -> None:
+    """One fitted model: its catalogue terms (``active``), every parameter's value, and
+    the Gauss–Newton covariance of the free ones (``cov`` [k, k], SI units²)."""
+    model, spec, theta = m.reduced()
+    g.attrs["model"] = model.name
+    g.attrs["terms"] = json.dumps([t.name for t in model.terms])
+    g.attrs["active"] = json.dumps(list(m.active))
+    g.attrs["cost"] = m.cost
+    named = spec.as_dict(theta)
+    g["names"] = np.array(list(named), dtype=h5py.string_dtype())
+    g["values"] = np.array(list(named.values()), dtype=np.float64)
+    g["free"] = np.array([spec[n].free for n in named], dtype=bool)
+    g["units"] = np.array([spec[n].unit for n in named], dtype=h5py.string_dtype())
+    g["cov"] = m.covariance([n for n in named if spec[n].free])
