@@ -54,6 +54,8 @@ def run_block(commands: str) -> str:
         argv = shlex.split(line)
         if argv[0] == "fricjax":  # the console script of this checkout's environment
             argv = [sys.executable, "-m", "fricjax.cli", *argv[1:]]
+        elif argv[0] == "python":  # this environment's interpreter, not the PATH's
+            argv = [sys.executable, *argv[1:]]
         done = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True)
         if done.returncode not in (0,):
             raise SystemExit(f"{line}: exit {done.returncode}\n{done.stderr[-2000:]}")

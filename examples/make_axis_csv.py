@@ -13,7 +13,10 @@ of 1 µm, the load cell F with 0.05 N; 2 s at 1 kHz.
 Two runs of the rig: ``axis.csv`` (identification) and ``axis_validation.csv`` (another
 force profile and noise draw, to check the model on data it was not fitted to).
 
-Usage: ``python examples/make_axis_csv.py [FOLDER]`` (default: beside this script). The noise
+Usage: ``python examples/make_axis_csv.py [FOLDER]`` (default: beside this script);
+``python examples/make_axis_csv.py --run PROFILE.csv --out RUN.csv [--seed S]`` runs the same
+rig under a force profile (columns ``t,u``, e.g. what ``fricjax design`` writes, linearly
+interpolated) and writes the recording it would log. The noise
 has fixed seeds, so a run writes the same files bit for bit on one machine; another CPU may
 round the integration's last digits differently (about 1e-13 m, far below the 1 µm noise).
 """
@@ -39,8 +42,14 @@ RUNS = {
 }
 
 
-def force(t: np.ndarray | float, profile: tuple[tuple[float, float, float], ...]) -> np.ndarray:
-    """Measured force F(t) [N]: a sum of sines A·sin(2πf·t + φ)."""
+Profile = tuple[tuple[float, float, float], ...] | tuple[np.ndarray, np.ndarray]
+
+
+def force(t: np.ndarray | float, profile: Profile) -> np.ndarray:
+    """Measured force F(t) [N]: a sum of sines A·sin(2πf·t + φ), or samples ``(t_k, F_k)``
+    interpolated linearly."""
+    if len(profile) == 2 and isinstance(profile[0], np.ndarray):
+        return np.interp(t, profile[0], profile[1])
     return sum(a * np.sin(2 * math.pi * f * np.asarray(t) + p) for a, f, p in profile)
 
 
@@ -49,7 +58,7 @@ def friction(v: float) -> float:
     return (FC + (FS - FC) * math.exp(-abs(v) / VS)) * math.copysign(1.0, v) + FV * v
 
 
-def simulate(t_eval: np.ndarray, profile: tuple[tuple[float, float, float], ...]) -> np.ndarray:
+def simulate(t_eval: np.ndarray, profile: Profile) -> np.ndarray:
     """Exact motion x(t) [m] at ``t_eval`` [s] under ``force(t, profile)``, from rest at 0."""
 
     def drive(s: float) -> float:
@@ -99,19 +108,37 @@ def simulate(t_eval: np.ndarray, profile: tuple[tuple[float, float, float], ...]
     return x_out
 
 
+def record(t: np.ndarray, profile: Profile, seed: int, path: Path) -> None:
+    """Run the rig under ``profile`` and write what it logs: ``t,x,u`` with the noise of
+    encoder and load cell."""
+    x = simulate(t, profile)
+    rng = np.random.default_rng(seed)
+    x_meas = x + rng.normal(0.0, NOISE_X, t.size)
+    f_meas = force(t, profile) + rng.normal(0.0, NOISE_F, t.size)
+    rows = "\n".join(
+        f"{a:.17g},{b:.17g},{c:.17g}" for a, b, c in zip(t, x_meas, f_meas, strict=True)
+    )
+    path.write_text("t,x,u\n" + rows + "\n")
+    print(f"wrote {path}: {t.size} samples, x in [{x.min():.4f}, {x.max():.4f}] m")
+
+
 def main(folder: Path) -> None:
+    """Write the two runs of RUNS into ``folder``."""
     t = np.arange(round(RATE * DURATION)) / RATE
     for name, (seed, profile) in RUNS.items():
-        x = simulate(t, profile)
-        rng = np.random.default_rng(seed)
-        x_meas = x + rng.normal(0.0, NOISE_X, t.size)
-        f_meas = force(t, profile) + rng.normal(0.0, NOISE_F, t.size)
-        rows = "\n".join(
-            f"{a:.17g},{b:.17g},{c:.17g}" for a, b, c in zip(t, x_meas, f_meas, strict=True)
-        )
-        (folder / name).write_text("t,x,u\n" + rows + "\n")
-        print(f"wrote {folder / name}: {t.size} samples, x in [{x.min():.4f}, {x.max():.4f}] m")
+        record(t, profile, seed, folder / name)
+
+
+def run_profile(profile_csv: Path, out: Path, seed: int = 2) -> None:
+    """Run the rig under the force profile of ``profile_csv`` (columns t, u) into ``out``."""
+    given = np.loadtxt(profile_csv, delimiter=",", skiprows=1)
+    record(given[:, 0], (given[:, 0], given[:, 1]), seed, out)
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent)
+    argv = sys.argv[1:]
+    if argv[:1] == ["--run"]:
+        flags = dict(zip(argv[::2], argv[1::2], strict=False))
+        run_profile(Path(flags["--run"]), Path(flags["--out"]), int(flags.get("--seed", 2)))
+    else:
+        main(Path(argv[0]) if argv else Path(__file__).parent)

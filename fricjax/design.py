@@ -156,7 +156,8 @@ class Design(NamedTuple):
     """A designed test and what it should show.
 
     t [s], u [unit of u], column: the profile and the recording column it goes in;
-    rivals: the models' names; x [K, n] [m]: each model's predicted position; sigma_x [m];
+    rivals: the models' names ("base" or the term each adds); models: their terms;
+    x [K, n] [m]: each model's predicted position; sigma_x [m];
     divergence [K, K]: D_ij (eq. [1]; row i true, column j rival; diagonal 0);
     expected_delta_bic [K, K]: ΔBIC_ij of the pair of records; standard: for standard
     tests of the same duration and peak input (:func:`standard_inputs`), by name, their
@@ -167,6 +168,7 @@ class Design(NamedTuple):
     u: np.ndarray
     column: str
     rivals: tuple[str, ...]
+    models: tuple[str, ...]
     x: np.ndarray
     sigma_x: float
     divergence: np.ndarray
@@ -196,6 +198,7 @@ class Design(NamedTuple):
         ]
         return {
             "rivals": list(self.rivals),
+            "models": list(self.models),
             "column": self.column,
             "duration_s": self.plan.duration,
             "dt_s": self.plan.dt,
@@ -227,7 +230,8 @@ def read_rivals(
     σ_x [m].
 
     ``names``: the models to separate (``"base"`` for the step's starting model, else
-    catalogue effects), from the first step that fitted them all; None: the first
+    catalogue effects), from the last step that fitted them all (its base holds the terms
+    named before it); None: the first
     ambiguity set of ``diagnosis.json`` (the named term and its alternatives), from the
     step that named it. ``problem``: the record and config the diagnosis ran on (its base
     model is rebuilt with each fit's catalogue terms)."""
@@ -268,7 +272,8 @@ def ambiguity_set(diagnosis_json: Path) -> tuple[str, list[str]]:
 
 
 def _step_for(steps: list, names: Sequence[str], path: Path) -> h5py.Group:
-    for g in steps:
+    # the last step that fitted them all: its base holds every term named before it
+    for g in reversed(steps):
         if all(n in g for n in names):
             return g
     have = sorted({n for g in steps for n in g})
@@ -377,8 +382,13 @@ class Scaled(NamedTuple):
 
 def scale_rival(r: Rival, sigma: float) -> Scaled:
     std = np.sqrt(np.clip(np.diag(r.cov), 0.0, None))
+    # a parameter the record does not determine (σ = inf or nan) is left to the new test:
+    # a σ a million times its value makes its prior precision nil without overflowing z
+    value = np.array([abs(r.params[n]) for n in r.free], dtype=np.float64)
+    loose = ~np.isfinite(std)
+    std = np.where(loose, 1e6 * np.maximum(value, 1e-9), std)
     safe = np.where(std > 0, std, 1.0)
-    corr = r.cov / np.outer(safe, safe)
+    corr = np.where(loose[:, None] | loose[None, :], 0.0, r.cov) / np.outer(safe, safe)
     np.fill_diagonal(corr, 1.0)
     w, v = np.linalg.eigh(0.5 * (corr + corr.T))
     prior = (v / np.maximum(w, CORR_FLOOR)) @ v.T * sigma**2
@@ -590,6 +600,7 @@ def design(
         u=best,
         column=column,
         rivals=tuple(r.name for r in rivals),
+        models=tuple(r.model.name for r in rivals),
         x=xs,
         sigma_x=sigma,
         divergence=d,

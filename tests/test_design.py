@@ -171,27 +171,35 @@ def test_the_design_separates_more_than_its_starts_within_the_limits(short_axis)
     )
 
 
-def write_models(folder: Path, problem, fits: dict[str, dict[str, float]], named: str) -> None:
-    """A diagnosis folder in the layout of docs/formats.md: one step, its base and fits."""
+def write_models(folder: Path, problem, steps: list[tuple[str, dict]]) -> None:
+    """A diagnosis folder in the layout of docs/formats.md: per step, the term it named and
+    its fits by name ("base" the model it started from, with the terms named before)."""
     folder.mkdir(parents=True, exist_ok=True)
     with h5py.File(folder / "models.h5", "w") as f:
         f.attrs["format"] = "fricjax-diagnosis-models-v1"
         f.attrs["sigma_x_m"] = SIGMA
         f.attrs["n_samples"] = problem.n
-        g = f.create_group("steps/0")
-        g.attrs["named"] = named
-        for name, values in fits.items():
-            r = rival(problem, name, values, {})
-            sub = g.create_group(name)
-            sub.attrs["active"] = json.dumps([] if name == "base" else [name])
-            sub.attrs["cost"] = 100.0
-            sub.attrs["delta_bic"] = 10.0
-            sub.attrs["p_value"] = 1e-4
-            names = list(r.params)
-            sub["names"] = np.array(names, dtype=h5py.string_dtype())
-            sub["values"] = np.array([r.params[n] for n in names])
-            sub["free"] = np.array([n in r.free for n in names])
-            sub["cov"] = 1e-4 * np.eye(len(r.free))
+        before: list[str] = []
+        for i, (named, fits) in enumerate(steps):
+            g = f.create_group(f"steps/{i}")
+            g.attrs["named"] = named
+            for name, values in fits.items():
+                active = before if name == "base" else [*before, name]
+                model, spec = problem.model, problem.spec
+                for e in active:
+                    model, spec = candidate(e).extend(model, spec, problem)
+                params = {p.name: float(p.init) for p in spec.params} | values
+                sub = g.create_group(name)
+                sub.attrs["active"] = json.dumps(active)
+                sub.attrs["cost"] = 100.0
+                sub.attrs["delta_bic"] = 10.0
+                sub.attrs["p_value"] = 1e-4
+                sub["names"] = np.array(list(params), dtype=h5py.string_dtype())
+                sub["values"] = np.array(list(params.values()))
+                sub["free"] = np.array([n in spec.free_names for n in params])
+                sub["cov"] = 1e-4 * np.eye(len(spec.free_names))
+            before = [*before, named]
+    named, fits = steps[0]
     findings = [
         {"effect": named, "alternatives": [{"effect": n} for n in fits if n not in (named, "base")]}
     ]
@@ -201,14 +209,19 @@ def write_models(folder: Path, problem, fits: dict[str, dict[str, float]], named
 def test_the_rivals_come_from_the_diagnosis_ambiguity_set_or_by_name(
     short_axis, tmp_path: Path
 ) -> None:
-    fits = {"base": BASE, "stribeck": STRIBECK, "quadratic_drag": BASE | {"drag_Cd": 3.0}}
-    write_models(tmp_path, short_axis, fits, "stribeck")
+    drag = BASE | {"drag_Cd": 3.0}
+    first = {"base": BASE, "stribeck": STRIBECK, "quadratic_drag": drag}
+    second = {"base": STRIBECK, "quadratic_drag": STRIBECK | {"drag_Cd": 2.0}}
+    write_models(tmp_path, short_axis, [("stribeck", first), ("", second)])
     rivals, sigma = read_rivals(tmp_path, short_axis)
     assert [r.name for r in rivals] == ["stribeck", "quadratic_drag"] and sigma == SIGMA
-    assert rivals[0].params["stribeck_A"] == 5.0
+    assert rivals[0].params["stribeck_A"] == 5.0 and rivals[1].params["drag_Cd"] == 3.0
     assert rivals[1].model.name.endswith("quadratic_drag")
-    rivals, _ = read_rivals(tmp_path, short_axis, ["base", "stribeck"])
-    assert [r.name for r in rivals] == ["base", "stribeck"] and rivals[0].cov.shape == (3, 3)
+    # by name: the last step that fitted them all, whose base holds the Stribeck term
+    rivals, _ = read_rivals(tmp_path, short_axis, ["base", "quadratic_drag"])
+    assert [r.name for r in rivals] == ["base", "quadratic_drag"]
+    assert "stribeck" in rivals[0].model.name and rivals[1].params["drag_Cd"] == 2.0
+    assert rivals[0].cov.shape == (5, 5)
     with pytest.raises(FricjaxError, match="no step fitted all of base, impact"):
         read_rivals(tmp_path, short_axis, ["base", "impact"])
 

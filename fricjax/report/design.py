@@ -67,7 +67,8 @@ def format_design(d: Design) -> str:
         f"Designed test: {d.plan.duration:g} s at {1 / d.plan.dt:g} Hz, input {d.column} "
         f"within {fmt(d.limits.u_mid)} ± {fmt(d.limits.u_peak)}, "
         f"{d.plan.harmonics} harmonics of {1 / d.plan.duration:.3g} Hz.",
-        f"Models to separate: {', '.join(d.rivals)} (σ_x = {d.sigma_x:.3g} m).",
+        f"Models to separate (σ_x = {d.sigma_x:.3g} m):",
+        *(f"  {name:>22}: {model}" for name, model in zip(d.rivals, d.models, strict=True)),
         "Expected evidence if the first is true (linearised, noise-free; the rival refitted "
         "on both records):",
     ]

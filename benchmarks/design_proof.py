@@ -1,0 +1,207 @@
+"""Does a designed test resolve what a record cannot? (issue "Design the next test").
+
+On the concealed benchmark's force-driven cases (a force profile ``/u`` commands the body)
+whose diagnosis ends with an ambiguity set, for each case:
+
+1. diagnose the case (``fricjax.api.diagnose_recording``, this checkout);
+2. design the next test on its first ambiguity set (``fricjax.api.design_test``, defaults);
+3. run that test on the benchmark's *own* plant (``concealed/plant.py``: scipy, no fricjax
+   code) with the case's hidden effect, and add the case's noise (a new seed);
+4. the same with a standard test of equal duration and peak force: the chirp ``design``
+   prints beside its own profile;
+5. diagnose each pair of records jointly (``fricjax.api.diagnose_recordings``) and record
+   whether the hidden effect is then named first, and named alone (no alternative).
+
+Reads the truth only to build the plant and to score. Usage::
+
+    PYTHONPATH=. python benchmarks/design_proof.py --data out/concealed --out out/design_proof \\
+        --limit 4 --report benchmarks/results/design_proof.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "concealed"))
+
+import generate as gen
+import plant as pl
+
+from fricjax import api
+from fricjax.data.recording import Recording, write_recording
+from fricjax.design import plan_for, record_limits, standard_inputs
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_plant(truth: dict[str, Any], t: np.ndarray, u: np.ndarray, seed: int) -> np.ndarray:
+    """The case's plant (hidden effect included) under the force profile ``u`` [N] at ``t``
+    [s], from rest, with the case's position noise (a new draw); x [m]."""
+    drive = pl.Drive("input", profile=lambda s: np.interp(s, t, u))
+    effect = pl.Effect(truth["effect"], truth.get("params", {}))
+    x, _, _ = pl.Plant(truth["base"], drive, truth["mass_given_kg"], effect).simulate(t)
+    rng = np.random.default_rng(seed)
+    return x + rng.normal(0.0, truth["sigma"], t.size)
+
+
+def first_finding(diag: dict[str, Any]) -> tuple[str, list[str]]:
+    for f in diag.get("findings", []):
+        if f.get("effect") and f["effect"] != "unexplained":
+            return f["effect"], [a["effect"] for a in f.get("alternatives", [])]
+    return "", []
+
+
+def one_case(path: Path, out: Path, time_limit: float) -> dict[str, Any] | None:
+    truth = gen.read_truth(path)
+    if truth["drive"]["kind"] != "input" or truth["kind"] != "catalogue":
+        return None
+    config = ROOT / truth["config"]
+    folder = out / path.stem
+    folder.mkdir(parents=True, exist_ok=True)
+    limit = {"time_limit": time_limit}
+    t0 = time.perf_counter()
+    diag_dir = folder / "diagnosis"
+    if not (diag_dir / "diagnosis.json").is_file():
+        api.diagnose_recording(path, config, out=diag_dir, overrides=limit)
+    diag = json.loads((diag_dir / "diagnosis.json").read_text(encoding="utf-8"))
+    named, alternatives = first_finding(diag)
+    row: dict[str, Any] = {
+        "case": path.stem,
+        "truth": truth["effect"],
+        "named": named,
+        "alternatives": alternatives,
+        "diagnose_s": time.perf_counter() - t0,
+    }
+    if not alternatives:
+        row["skipped"] = "no ambiguity set"
+        return row
+    t1 = time.perf_counter()
+    result, _ = api.design_test(path, config, diag_dir, out=folder / "next.csv")
+    row["design_s"] = time.perf_counter() - t1
+    row["design_separation"] = result.separation
+    row["chirp_separation"] = result.standard["chirp"]["separation"]
+    _, _, problem = api.load(path, config)
+    chirp = standard_inputs(problem, plan_for(problem), record_limits(problem))["chirp"]
+    for label, u in (("designed", result.u), ("chirp", chirp)):
+        try:
+            x = run_plant(truth, result.t, u, seed=7)
+        except RuntimeError as e:  # the plant chatters under this input
+            row[label] = {
+                "named": "",
+                "alternatives": [],
+                "truth_first": False,
+                "truth_alone": False,
+                "plant_error": str(e),
+            }
+            continue
+        rec = Recording(t=result.t, x=x, u=u, mass=truth["mass_given_kg"], name=label, u_unit="N")
+        second = write_recording(rec, folder / f"{label}.h5")
+        pair_dir = folder / f"pair_{label}"
+        t2 = time.perf_counter()
+        if not (pair_dir / "diagnosis.json").is_file():
+            api.diagnose_recordings([path, second], config, out=pair_dir, overrides=limit)
+        pair = json.loads((pair_dir / "diagnosis.json").read_text(encoding="utf-8"))
+        first, alts = first_finding(pair)
+        row[label] = {
+            "named": first,
+            "alternatives": alts,
+            "truth_first": first == truth["effect"],
+            "truth_alone": first == truth["effect"] and not alts,
+            "pair_diagnose_s": time.perf_counter() - t2,
+        }
+    return row
+
+
+def report(rows: list[dict[str, Any]], machine: str) -> str:
+    tried = [r for r in rows if "designed" in r]
+    lines = [
+        "# Designed next test on the concealed benchmark",
+        "",
+        f"Machine: {machine}. Command: `PYTHONPATH=. python benchmarks/design_proof.py` "
+        "(module docstring). Force-driven catalogue cases whose diagnosis ends with an "
+        "ambiguity set; the pair (record + new test run on the benchmark's own plant) "
+        "diagnosed jointly.",
+        "",
+        "| case | truth | named (alternatives) | design D / chirp D | pair, designed | "
+        "pair, chirp | design s |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        if "designed" not in r:
+            lines.append(
+                f"| {r['case']} | {r['truth']} | {r['named'] or '—'} | {r.get('skipped', '')} "
+                "| | | |"
+            )
+            continue
+        d, c = r["designed"], r["chirp"]
+
+        def cell(p: dict[str, Any]) -> str:
+            alts = f" ({', '.join(p['alternatives'])})" if p["alternatives"] else ""
+            return f"{p['named'] or '—'}{alts}"
+
+        lines.append(
+            f"| {r['case']} | {r['truth']} | {r['named']} ({', '.join(r['alternatives'])}) | "
+            f"{r['design_separation']:.3g} / {r['chirp_separation']:.3g} | {cell(d)} | "
+            f"{cell(c)} | {r['design_s']:.0f} |"
+        )
+    for label in ("designed", "chirp"):
+        first = sum(r[label]["truth_first"] for r in tried)
+        alone = sum(r[label]["truth_alone"] for r in tried)
+        lines.append(
+            f"\n{label}: truth named first {first}/{len(tried)}, named alone {alone}/{len(tried)}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=ROOT / "out" / "concealed")
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "design_proof")
+    ap.add_argument("--draws", default="A,B")
+    ap.add_argument("--limit", type=int, default=4, help="cases with an ambiguity set to try")
+    ap.add_argument("--time-limit", type=float, default=300.0)
+    ap.add_argument("--report", type=Path, default=None)
+    ap.add_argument(
+        "--prior",
+        type=Path,
+        default=None,
+        help="results of an earlier score.py run (RESULTS/draw<X>/CASE/diagnosis.json): "
+        "try only the cases whose diagnosis there ended with an ambiguity set",
+    )
+    args = ap.parse_args()
+    api.enable_compilation_cache()
+    rows: list[dict[str, Any]] = []
+    paths = sorted(p for d in args.draws.split(",") for p in (args.data / f"draw{d}").glob("*.h5"))
+    if args.prior is not None:
+
+        def ambiguous(path: Path) -> bool:
+            earlier = args.prior / path.parent.name / path.stem / "diagnosis.json"
+            return earlier.is_file() and bool(
+                first_finding(json.loads(earlier.read_text(encoding="utf-8")))[1]
+            )
+
+        paths = [p for p in paths if ambiguous(p)]
+    for path in paths:
+        if sum("designed" in r for r in rows) >= args.limit:
+            break
+        row = one_case(path, args.out, args.time_limit)
+        if row is not None:
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    machine = f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f} at the end"
+    text = report(rows, machine)
+    print(text)
+    if args.report is not None:
+        args.report.write_text(text, encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()
