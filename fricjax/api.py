@@ -713,46 +713,95 @@ def parse_limits(text: str | None, problem: Problem) -> Any:
 def design_test(
     recording: str | Path | Recording,
     config: str | Path | Config,
-    diagnosis: str | Path,
+    diagnosis: str | Path | None = None,
     *,
+    results: str | Path | None = None,
     out: str | Path | None = None,
     candidates: list[str] | None = None,
+    focus: list[str] | None = None,
     limits: str | None = None,
     duration: float | None = None,
     settings: Any = None,
     mass: float | None = None,
 ) -> tuple[Any, dict[str, Path]]:
-    """``fricjax design``: the next test's input profile that best separates the models of
-    a diagnosis' ambiguity set (or ``candidates``: "base" and catalogue names) on this rig
-    (:mod:`fricjax.design`); writes ``out`` (CSV), its .png and .json when given.
+    """``fricjax design`` (:mod:`fricjax.design`): the next test's input profile, written to
+    ``out`` (CSV) with its .png and .json when given.
+
+    With ``diagnosis`` (a diagnosis folder of ``recording``): the profile that best
+    separates the models of its first ambiguity set, or ``candidates`` ("base" and
+    catalogue names). With ``results`` (an identify results file of ``recording``): the
+    profile that best determines ``focus`` (default: the parameters the identify summary
+    calls undetermined, else all free ones). Exactly one of the two.
 
     Returns:
-        (:class:`~fricjax.design.Design`, the paths written).
+        (:class:`~fricjax.design.Design` or :class:`~fricjax.design.PrecisionDesign`, the
+        paths written).
     """
-    from fricjax.design import DesignSettings, commanded_input, design, read_rivals
+    from fricjax.design import (
+        DesignSettings,
+        Rival,
+        commanded_input,
+        design,
+        design_precision,
+        read_rivals,
+    )
+    from fricjax.output_error import noise_scale
+    from fricjax.refine import covariance
     from fricjax.report.design import design_files, write_design
 
+    if (diagnosis is None) == (results is None):
+        raise FricjaxError(
+            f"{where('design', '--diagnosis/--results')}: give exactly one of them "
+            "(a diagnosis to separate its models, or identify results to determine parameters)"
+        )
     source = (recording.path or recording.name) if isinstance(recording, Recording) else recording
     if out is not None:
         config_path = (config.source or None) if isinstance(config, Config) else config
         check_outputs(
             list(design_files(out).values()),
-            {"recording": source, "--config": config_path},
+            {"recording": source, "--config": config_path, "--results": results},
             "--out",
         )
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise FricjaxError(f"--duration: {duration} must be finite and > 0 [s]")
     _, _, problem = load(recording, config, mass=mass)
     commanded_input(problem)
-    rivals, sigma = read_rivals(diagnosis, problem, candidates)
-    result = design(
-        problem,
-        rivals,
-        sigma,
-        limits=parse_limits(limits, problem),
-        duration=duration,
-        settings=settings or DesignSettings(),
-    )
+    lim = parse_limits(limits, problem)
+    settings = settings or DesignSettings()
+    result: Any
+    if diagnosis is not None:
+        rivals, sigma = read_rivals(diagnosis, problem, candidates)
+        result = design(problem, rivals, sigma, limits=lim, duration=duration, settings=settings)
+    else:
+        from fricjax.io.results import read_results
+        from fricjax.report.show import undetermined
+
+        runs = read_results(results).runs  # type: ignore[arg-type]
+        run = min(runs, key=lambda r: r.cost)
+        unknown = sorted(set(run.names) - set(problem.spec.names))
+        if unknown:
+            raise FricjaxError(
+                f"{where(results, 'params')}: {', '.join(unknown)} not in the config's model "
+                f"{problem.model.name} (identified with another config?)"
+            )
+        model = Rival(
+            name="identified",
+            model=problem.model,
+            params={p.name: float(p.init) for p in problem.spec.params} | run.params,
+            free=tuple(run.names),
+            cov=covariance(run.std, run.corr),
+            cost=0.0,
+        )
+        targets = focus or list(undetermined(run)) or list(run.names)
+        result = design_precision(
+            problem,
+            model,
+            noise_scale(np.asarray(problem.x)),
+            targets,
+            limits=lim,
+            duration=duration,
+            settings=settings,
+        )
     return result, ({} if out is None else write_design(result, out))
 
 

@@ -702,8 +702,32 @@ def design(
     recording: RecArg,
     config: ConfigOpt,
     diagnosis: Annotated[
-        Path, typer.Option(help="Folder of a diagnosis of RECORDING (its models.h5)")
-    ],
+        Path | None,
+        typer.Option(
+            help="Folder of a diagnosis of RECORDING (its models.h5): separate its models"
+        ),
+    ] = None,
+    results: Annotated[
+        Path | None,
+        typer.Option(
+            help="Identify results of RECORDING: determine its parameters (--for identify)"
+        ),
+    ] = None,
+    purpose: Annotated[
+        str,
+        typer.Option(
+            "--for",
+            help="discriminate (the diagnosis' rival models, needs --diagnosis) or identify "
+            "(the parameters the record does not determine, needs --results)",
+        ),
+    ] = "discriminate",
+    focus: Annotated[
+        str | None,
+        typer.Option(
+            help="--for identify: parameters to determine, comma-separated (default: those "
+            "the identify summary calls undetermined)"
+        ),
+    ] = None,
     out: Annotated[
         Path, typer.Option(help="The profile to run (CSV; .png and .json beside)")
     ] = Path("next_test.csv"),
@@ -741,15 +765,25 @@ def design(
 ) -> None:
     """Design the next test: an input profile within the rig's limits under which the
     diagnosis' rival models predict motions that differ most, in the record's noise, after
-    each has refitted what it can (docs/design.md)."""
+    each has refitted what it can; or (--for identify) that determines the parameters the
+    record does not (docs/design.md)."""
     from fricjax.api import design_test, enable_compilation_cache
     from fricjax.design import DesignSettings
-    from fricjax.report.design import format_design
+    from fricjax.report.design import format_design, format_precision
 
+    if purpose not in ("discriminate", "identify"):
+        raise FricjaxError(f"--for: {purpose!r}: discriminate or identify")
+    if purpose == "identify" and (results is None or diagnosis is not None):
+        raise FricjaxError("--for identify: give --results (identify's), not --diagnosis")
+    if purpose == "discriminate" and (diagnosis is None or results is not None):
+        raise FricjaxError(
+            "--for discriminate: give --diagnosis, not --results (or --for identify)"
+        )
     enable_compilation_cache()
-    names = None
-    if candidates is not None:
-        names = [c.strip() for c in candidates.split(",") if c.strip()]
+
+    def listed(text: str | None) -> list[str] | None:
+        return None if text is None else [c.strip() for c in text.split(",") if c.strip()]
+
     from rich.console import Console
 
     console = Console(stderr=True)
@@ -758,8 +792,10 @@ def design(
             recording,
             config,
             diagnosis,
+            results=results,
             out=out,
-            candidates=names,
+            candidates=listed(candidates),
+            focus=listed(focus),
             limits=limits,
             duration=duration,
             settings=DesignSettings(
@@ -767,7 +803,7 @@ def design(
             ),
             mass=mass,
         )
-    typer.echo(format_design(result))
+    typer.echo(format_design(result) if purpose == "discriminate" else format_precision(result))
     typer.echo(f"files: {', '.join(str(p) for p in paths.values())}")
 
 

@@ -562,30 +562,13 @@ def design(
     def loss(c: Array) -> Array:
         return _objective(c, rivals, scaled, sigma, plan, limits, settings)
 
-    grad = jax.value_and_grad(loss)
-
-    def run(c0: Array) -> tuple[Array, Array]:
-        def body(carry: tuple[Array, AdamState], _: None) -> tuple:
-            c, state = carry
-            value, g = grad(c)
-            c, state = adam_step(c, g, state, settings.rate)
-            return (c, state), value
-
-        (c, _), _ = jax.lax.scan(body, (c0, adam_init(c0)), None, length=settings.steps)
-        return c, loss(c)
-
-    standard = standard_inputs(problem, plan, limits)
-    # the standard tests, projected onto the profile, are starts: the design then begins
-    # where a test engineer would and only moves where the criterion gains
-    given = np.stack([project(u, plan, limits) for u in standard.values()])[: settings.starts]
-    width = 2 * plan.harmonics + 1
-    key = jax.random.key(settings.seed)
-    drawn = jax.random.normal(key, (settings.starts - len(given), width))
-    starts = jnp.concatenate([jnp.asarray(given), drawn / math.sqrt(plan.harmonics)])
-    coefs, _ = jax.jit(jax.vmap(run))(starts)
     assess = _assessor(rivals, scaled, sigma, plan, limits)
-    us = np.asarray(jax.vmap(lambda c: profile(c, plan, limits))(coefs))
-    best = _best_feasible(us, assess)
+
+    def score(u: np.ndarray) -> tuple[float, float]:
+        d, _, violation = assess(u)
+        return _min_off_diagonal(d), violation
+
+    best, standard = _optimise(loss, score, problem, plan, limits, settings)
     d, xs, violation = assess(best)
     cost = np.array([r.cost for r in rivals])
     k = np.array([r.k for r in rivals], dtype=np.float64)
@@ -612,6 +595,51 @@ def design(
     )
 
 
+def _optimise(
+    loss: Callable[[Array], Array],
+    score: Callable[[np.ndarray], tuple[float, float]],
+    problem: Problem,
+    plan: Plan,
+    limits: Limits,
+    settings: DesignSettings,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Adam on ``loss`` of the profile's coefficients from ``settings.starts`` lanes in one
+    vmapped batch; returns the profile [n] with the best ``score`` (higher is better) among
+    those within the limits (``score``'s second value ≤ :data:`LIMIT_SLACK`), and the
+    standard inputs (:func:`standard_inputs`), whose projections are the first starts."""
+    grad = jax.value_and_grad(loss)
+
+    def run(c0: Array) -> Array:
+        def body(carry: tuple[Array, AdamState], _: None) -> tuple:
+            c, state = carry
+            _, g = grad(c)
+            return adam_step(c, g, state, settings.rate), None
+
+        (c, _), _ = jax.lax.scan(body, (c0, adam_init(c0)), None, length=settings.steps)
+        return c
+
+    standard = standard_inputs(problem, plan, limits)
+    # the standard tests, projected onto the profile, are starts: the design then begins
+    # where a test engineer would and only moves where the criterion gains
+    given = np.stack([project(u, plan, limits) for u in standard.values()])[: settings.starts]
+    width = 2 * plan.harmonics + 1
+    drawn = jax.random.normal(jax.random.key(settings.seed), (settings.starts - len(given), width))
+    starts = jnp.concatenate([jnp.asarray(given), drawn / math.sqrt(plan.harmonics)])
+    coefs = jax.jit(jax.vmap(run))(starts)
+    us = np.asarray(jax.vmap(lambda c: profile(c, plan, limits))(coefs))
+    found = []
+    for u in us:
+        value, violation = score(u)
+        if violation <= LIMIT_SLACK and math.isfinite(value):
+            found.append((value, u))
+    if not found:
+        raise FricjaxError(
+            f"{where('design', 'limits')}: no start kept every model within the travel and "
+            "speed limits; widen --limits or shorten --duration"
+        )
+    return max(found, key=lambda a: a[0])[1], standard
+
+
 def _standard(judged: tuple[np.ndarray, np.ndarray, float]) -> dict[str, float]:
     d, _, violation = judged
     return {"separation": _min_off_diagonal(d), "limit_violation": violation}
@@ -636,24 +664,6 @@ def _assessor(
     return assess
 
 
-def _best_feasible(
-    us: np.ndarray, assess: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, float]]
-) -> np.ndarray:
-    """The profile of ``us`` [S, n] with the largest least separation among those that
-    keep every model within the limits."""
-    found: list[tuple[float, np.ndarray]] = []
-    for u in us:
-        d, _, violation = assess(u)
-        if violation <= LIMIT_SLACK and np.all(np.isfinite(d)):
-            found.append((_min_off_diagonal(d), u))
-    if not found:
-        raise FricjaxError(
-            f"{where('design', 'limits')}: no start kept every model within the travel and "
-            "speed limits; widen --limits or shorten --duration"
-        )
-    return max(found, key=lambda a: a[0])[1]
-
-
 def standard_inputs(problem: Problem, plan: Plan, limits: Limits) -> dict[str, np.ndarray]:
     """Standard tests of the same duration and peak input: a linear chirp from 1/T to the
     record's input band, and the record's own input (tiled or cut to the duration)."""
@@ -671,3 +681,167 @@ def standard_inputs(problem: Problem, plan: Plan, limits: Limits) -> dict[str, n
             again, limits.u_mid - limits.u_peak, limits.u_mid + limits.u_peak
         ),
     }
+
+
+# -- a test for precision: determine what the record does not ---------------------------
+
+
+class PrecisionDesign(NamedTuple):
+    """A test designed to determine parameters (``design --for identify``).
+
+    t [s], u [unit of u], column: the profile; model: its terms; x [1, n] [m]: the model's
+    predicted position; sigma_x [m]; names: the free parameters; focus: those the design
+    targets; value [k]: their identified values; sigma_before [k]: their σ from the record;
+    sigma_after [k]: the σ expected from the record and the new test together; shrink:
+    the focus' uncertainty ellipsoid after, relative to now, as the geometric mean of its
+    axes (det ratio^(1/2k), the D_s criterion in words); standard: for the standard tests
+    (:func:`standard_inputs`), by name, ``sigma_after`` [k], ``shrink`` and
+    ``limit_violation``; limits, plan; violation [1]."""
+
+    t: np.ndarray
+    u: np.ndarray
+    column: str
+    model: str
+    x: np.ndarray
+    sigma_x: float
+    names: tuple[str, ...]
+    focus: tuple[str, ...]
+    value: np.ndarray
+    sigma_before: np.ndarray
+    sigma_after: np.ndarray
+    shrink: float
+    standard: dict[str, dict[str, list[float] | float]]
+    limits: Limits
+    plan: Plan
+    violation: float
+
+    def as_json(self) -> dict:
+        return {
+            "for": "identify",
+            "shrink": self.shrink,
+            "model": self.model,
+            "column": self.column,
+            "duration_s": self.plan.duration,
+            "dt_s": self.plan.dt,
+            "harmonics": self.plan.harmonics,
+            "sigma_x_m": self.sigma_x,
+            "limits": self.limits._asdict(),
+            "limit_violation": self.violation,
+            "focus": list(self.focus),
+            "params": [
+                {
+                    "name": n,
+                    "value": float(v),
+                    "sigma_before": float(b),
+                    "sigma_after": float(a),
+                    **{
+                        f"sigma_after_{k}": float(std["sigma_after"][i])  # type: ignore[index]
+                        for k, std in self.standard.items()
+                    },
+                }
+                for i, (n, v, b, a) in enumerate(
+                    zip(self.names, self.value, self.sigma_before, self.sigma_after, strict=True)
+                )
+            ],
+            "criterion": "D_s-optimal: the smallest volume of the focus parameters' "
+            "covariance after the record and the new test, linearised",
+        }
+
+
+def posterior_sigma(jz: Float[Array, "n k"], scaled: Scaled, sigma: float) -> Float[Array, " k"]:
+    """σ [SI] of each free parameter after the record and a test with scaled sensitivity
+    ``jz``: ``σ_θ·√(σ_x²·(M⁻¹)_ii)``, ``M = J_zᵀJ_z + σ_x²·C⁻¹`` (the record's information on
+    z plus the test's, times σ_x²; with J_z = 0 it gives back σ_θ)."""
+    m = jz.T @ jz + scaled.prior
+    return scaled.std * sigma * jnp.sqrt(jnp.diag(jnp.linalg.inv(m)))
+
+
+def _focus_logdet(jz: Array, scaled: Scaled, focus: np.ndarray) -> Array:
+    """log det of the focus parameters' block of M⁻¹ (D_s criterion; minimised)."""
+    m = jz.T @ jz + scaled.prior
+    inv = jnp.linalg.inv(m)
+    return jnp.linalg.slogdet(inv[np.ix_(focus, focus)])[1]
+
+
+def design_precision(
+    problem: Problem,
+    model: Rival,
+    sigma: float,
+    focus: Sequence[str],
+    *,
+    limits: Limits | None = None,
+    duration: float | None = None,
+    settings: DesignSettings | None = None,
+) -> PrecisionDesign:
+    """The input profile that best determines ``focus`` (free parameters of ``model``, the
+    identified model with its covariance) in a new test, D_s-optimal: it minimises the
+    volume of their joint covariance after the record and the test, linearised about the
+    identified values (the record enters as the prior ``N(θ̂, Σ)``, as in eq. [1])."""
+    settings = settings or DesignSettings()
+    column = commanded_input(problem)
+    unknown = [n for n in focus if n not in model.free]
+    if unknown or not focus:
+        raise FricjaxError(
+            f"{where('design', 'focus')}: {', '.join(unknown) or 'nothing'} is not a free "
+            f"parameter of the identified model ({', '.join(model.free)})"
+        )
+    limits = limits or record_limits(problem)
+    plan = plan_for(problem, duration)
+    scaled = scale_rival(model, sigma)
+    idx = np.array([model.free.index(n) for n in focus])
+
+    def loss(c: Array) -> Array:
+        u = profile(c, plan, limits)
+        xs, vs, js = responses([model], [scaled], u, plan, SEARCH_SUBSTEPS)
+        excess = _excess(xs, vs, limits)
+        penalty = settings.penalty * jnp.sum(jnp.mean(excess**2, axis=1))
+        return _focus_logdet(js[0], scaled, idx) + penalty
+
+    @jax.jit
+    def judge(u: Array) -> tuple[Array, Array, Array, Array]:
+        xs, vs, js = responses([model], [scaled], u, plan)
+        return (
+            posterior_sigma(js[0], scaled, sigma),
+            _focus_logdet(js[0], scaled, idx),
+            jnp.stack(xs),
+            jnp.max(_excess(xs, vs, limits)),
+        )
+
+    def score(u: np.ndarray) -> tuple[float, float]:
+        _, logdet, _, violation = judge(jnp.asarray(u))
+        return -float(logdet), float(violation)
+
+    best, standard = _optimise(loss, score, problem, plan, limits, settings)
+    after, logdet, xs, violation = judge(jnp.asarray(best))
+    before = np.sqrt(np.diag(model.cov))
+    now = float(_focus_logdet(jnp.zeros((1, model.k)), scaled, idx))
+
+    def shrink(value: Array) -> float:
+        return math.exp((float(value) - now) / (2 * len(idx)))
+
+    def summary(u: np.ndarray) -> dict[str, list[float] | float]:
+        s_after, value, _, over = judge(jnp.asarray(u))
+        return {
+            "sigma_after": np.asarray(s_after).tolist(),
+            "shrink": shrink(value),
+            "limit_violation": float(over),
+        }
+
+    return PrecisionDesign(
+        t=plan.t,
+        u=best,
+        column=column,
+        model=model.model.name,
+        x=np.asarray(xs),
+        sigma_x=sigma,
+        names=model.free,
+        focus=tuple(focus),
+        value=np.array([model.params[n] for n in model.free]),
+        sigma_before=before,
+        sigma_after=np.asarray(after),
+        shrink=shrink(logdet),
+        standard={name: summary(u) for name, u in standard.items()},
+        limits=limits,
+        plan=plan,
+        violation=float(violation),
+    )

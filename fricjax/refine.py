@@ -575,6 +575,19 @@ def value_and_jacobian(
     return np.asarray(r, dtype=np.float64), np.asarray(jac, dtype=np.float64)
 
 
+def covariance(std: Float[np.ndarray, " k"], corr: Float[np.ndarray, "k k"]) -> np.ndarray:
+    """[k, k] covariance (units of the parameters²) from σ and the correlation matrix; a
+    parameter the record does not determine (σ = inf or NaN) keeps an inf variance and no
+    covariance with the others."""
+    std = np.asarray(std, dtype=np.float64)
+    finite = np.isfinite(std)
+    s = np.where(finite, std, 0.0)
+    rho = np.where(np.isfinite(corr), np.asarray(corr, dtype=np.float64), 0.0)
+    cov = rho * np.outer(s, s)
+    cov[np.diag_indices_from(cov)] = np.where(finite, std**2, np.inf)
+    return cov
+
+
 def uncertainty_at(
     r: Float[Array, " n"],
     jac: Float[Array, "n d"],

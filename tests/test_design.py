@@ -20,8 +20,10 @@ from fricjax.design import (
     Limits,
     Rival,
     design,
+    design_precision,
     divergence,
     plan_for,
+    posterior_sigma,
     profile,
     project,
     read_rivals,
@@ -252,5 +254,41 @@ def test_the_command_refuses_in_one_line(short_axis, tmp_path: Path, capsys) -> 
     for args, needle in cases:
         with pytest.raises(SystemExit) as exc:
             main(["design", *args, "--out", str(tmp_path / "next.csv")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 2 and len(err) == 1 and needle in err[0], (args, err)
+
+
+def test_the_expected_sigma_is_the_record_and_the_test_combined(short_axis) -> None:
+    # one free parameter: information adds, 1/σ² = 1/σ_record² + ‖J‖²/σ_x²
+    r = rival(short_axis, "base", BASE, {"Fv": 0.3})
+    r = Rival(r.name, r.model, r.params, ("Fv",), np.array([[0.09]]), 0.0)
+    s = scale_rival(r, SIGMA)
+    np.testing.assert_allclose(posterior_sigma(jnp.zeros((10, 1)), s, SIGMA), [0.3], rtol=1e-12)
+    j = np.random.default_rng(2).normal(size=(10, 1)) * 2e-6  # m per N·s/m
+    expected = 1.0 / np.sqrt(1.0 / 0.09 + np.sum(j**2) / SIGMA**2)
+    got = posterior_sigma(jnp.asarray(j * 0.3), s, SIGMA)
+    np.testing.assert_allclose(got, [expected], rtol=1e-10)
+
+
+@pytest.mark.slow
+def test_a_precision_design_determines_a_loose_parameter_within_the_limits(short_axis) -> None:
+    r = rival(short_axis, "base", BASE, {"Fc": 0.01, "Fv": 30.0, "offset": 0.01})
+    d = design_precision(short_axis, r, SIGMA, ["Fv"], settings=DesignSettings(starts=2, steps=8))
+    i = d.names.index("Fv")
+    assert d.sigma_after[i] < 0.01 * d.sigma_before[i]
+    assert d.violation <= 0.01 and np.all(np.abs(d.u - d.limits.u_mid) <= d.limits.u_peak)
+    assert 0 < d.shrink < 0.01
+
+
+def test_the_purpose_and_its_input_must_agree(tmp_path: Path, capsys) -> None:
+    base = [str(AXIS), "-c", str(AXIS_CONFIG), "--mass", "12", "--out", str(tmp_path / "n.csv")]
+    cases = [
+        (["--for", "identify", "--diagnosis", str(tmp_path)], "give --results"),
+        (["--for", "bogus"], "discriminate or identify"),
+        ([], "give --diagnosis"),
+    ]
+    for args, needle in cases:
+        with pytest.raises(SystemExit) as exc:
+            main(["design", *base, *args])
         err = capsys.readouterr().err.strip().splitlines()
         assert exc.value.code == 2 and len(err) == 1 and needle in err[0], (args, err)

@@ -76,6 +76,7 @@ from fricjax.output_error import (
 from fricjax.params import ParamSpec
 from fricjax.problem import EquationError, Problem
 from fricjax.programs import stored
+from fricjax.refine import covariance
 
 __all__ = [
     "CandidateFit",
@@ -199,11 +200,7 @@ class Fitted:
         corr = np.eye(len(idx))
         corr[np.ix_(ok, ok)] = np.asarray(self.fit.corr)[np.ix_(idx[ok], idx[ok])]
         np.fill_diagonal(corr, 1.0)
-        # an undetermined parameter (σ = inf) keeps its inf variance and no covariance
-        finite = np.isfinite(std)
-        cov = corr * np.outer(np.where(finite, std, 0.0), np.where(finite, std, 0.0))
-        cov[np.diag_indices_from(cov)] = np.where(finite, std**2, np.inf)
-        return cov
+        return covariance(std, corr)
 
     def reduced(self) -> tuple[Model, ParamSpec, np.ndarray]:
         """(model, spec, θ) of base + the active terms alone, for files a user reads."""

@@ -10,12 +10,19 @@ from pathlib import Path
 
 import numpy as np
 
-from fricjax.design import Design
+from fricjax.design import Design, PrecisionDesign
 from fricjax.io.atomic import write_text_atomic
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt
 
-__all__ = ["design_files", "format_design", "plot_design", "write_design"]
+__all__ = [
+    "design_files",
+    "format_design",
+    "format_precision",
+    "plot_design",
+    "plot_precision",
+    "write_design",
+]
 
 
 def design_files(out_csv: str | Path) -> dict[str, Path]:
@@ -24,7 +31,7 @@ def design_files(out_csv: str | Path) -> dict[str, Path]:
     return {"csv": out, "png": out.with_suffix(".png"), "json": out.with_suffix(".json")}
 
 
-def write_design(d: Design, out_csv: str | Path) -> dict[str, Path]:
+def write_design(d: Design | PrecisionDesign, out_csv: str | Path) -> dict[str, Path]:
     """Write the profile (``t,<column>``, one sample a row, the record's sample rate), its
     figure and its numbers, each atomically; returns their paths."""
     paths = design_files(out_csv)
@@ -32,7 +39,10 @@ def write_design(d: Design, out_csv: str | Path) -> dict[str, Path]:
     np.savetxt(buf, np.column_stack([d.t, d.u]), delimiter=",", header=f"t,{d.column}", comments="")
     write_text_atomic(paths["csv"], buf.getvalue())
     write_text_atomic(paths["json"], json.dumps(d.as_json(), indent=2) + "\n")
-    plot_design(d, paths["png"])
+    if isinstance(d, Design):
+        plot_design(d, paths["png"])
+    else:
+        plot_precision(d, paths["png"])
     return paths
 
 
@@ -93,5 +103,59 @@ def format_design(d: Design) -> str:
     lines.append(
         f"Travel {fmt(d.limits.x_lo)}–{fmt(d.limits.x_hi)} m and speed ≤ {fmt(d.limits.speed)} "
         f"m/s kept by every model (largest excess {100 * d.violation:.2g} %)."
+    )
+    return "\n".join(lines)
+
+
+def plot_precision(d: PrecisionDesign, path: Path) -> Path:
+    """The input, and the identified model's predicted position within the travel limits."""
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    axes[0].plot(d.t, d.u, color="k", lw=1.0)
+    for level in (d.limits.u_mid - d.limits.u_peak, d.limits.u_mid + d.limits.u_peak):
+        axes[0].axhline(level, color="0.6", ls=":", lw=0.8)
+    axes[0].set_ylabel(f"input {d.column}")
+    axes[0].set_title(f"Designed test to determine {', '.join(d.focus)} (limits dotted)")
+    axes[1].plot(d.t, 1e3 * d.x[0], lw=1.0, label=d.model)
+    for level in (d.limits.x_lo, d.limits.x_hi):
+        axes[1].axhline(1e3 * level, color="0.6", ls=":", lw=0.8)
+    axes[1].set_ylabel("predicted x [mm]")
+    axes[1].set_xlabel("t [s]")
+    axes[1].legend(fontsize=8, loc="best")
+    return save(fig, path)
+
+
+def format_precision(d: PrecisionDesign) -> str:
+    """Each parameter's σ now, after the designed test, and after the standard tests."""
+    names = list(d.standard)
+    lines = [
+        f"Designed test: {d.plan.duration:g} s at {1 / d.plan.dt:g} Hz, input {d.column} "
+        f"within {fmt(d.limits.u_mid)} ± {fmt(d.limits.u_peak)}, "
+        f"{d.plan.harmonics} harmonics of {1 / d.plan.duration:.3g} Hz; "
+        f"σ_x = {d.sigma_x:.3g} m.",
+        f"To determine: {', '.join(d.focus)} (D_s-optimal; σ expected from the record and "
+        "the new test together, linearised):",
+        f"  {'parameter':>14} {'value':>11} {'σ now':>11} {'σ designed':>11} "
+        + " ".join(f"{'σ ' + n:>16}" for n in names),
+    ]
+    for i, name in enumerate(d.names):
+        mark = "*" if name in d.focus else " "
+        row = (
+            f"{mark} {name:>14} {d.value[i]:11.4g} {d.sigma_before[i]:11.3g} "
+            f"{d.sigma_after[i]:11.3g} "
+        )
+        row += " ".join(f"{d.standard[n]['sigma_after'][i]:16.3g}" for n in names)  # type: ignore[index]
+        lines.append(row)
+    lines.append(
+        f"The focus' uncertainty shrinks to {d.shrink:.3g} of now (geometric mean over its "
+        "axes); "
+        + ", ".join(f"with a {n}: {float(s['shrink']):.3g}" for n, s in d.standard.items())  # type: ignore[arg-type]
+        + "."
+    )
+    over = {n: float(s["limit_violation"]) for n, s in d.standard.items()}  # type: ignore[arg-type]
+    out = [f"{n} leaves the limits by {100 * v:.2g} %" for n, v in over.items() if v > 0.01]
+    lines.append(
+        f"Travel {fmt(d.limits.x_lo)}–{fmt(d.limits.x_hi)} m and speed ≤ {fmt(d.limits.speed)} "
+        f"m/s kept (largest excess {100 * d.violation:.2g} %)"
+        + (f"; {'; '.join(out)}." if out else ".")
     )
     return "\n".join(lines)
