@@ -197,15 +197,10 @@ class Design(NamedTuple):
             if i != j
         ]
         return {
+            "for": "discriminate",
             "rivals": list(self.rivals),
             "models": list(self.models),
-            "column": self.column,
-            "duration_s": self.plan.duration,
-            "dt_s": self.plan.dt,
-            "harmonics": self.plan.harmonics,
-            "sigma_x_m": self.sigma_x,
-            "limits": self.limits._asdict(),
-            "limit_violation": self.violation,
+            **_about_the_test(self.column, self.plan, self.sigma_x, self.limits, self.violation),
             "separation": self.separation,
             "pairs": pairs,
             "standard_tests": self.standard,
@@ -213,6 +208,21 @@ class Design(NamedTuple):
             "rival on both records (Buzzi-Ferraris divergence with the rival's parameter "
             "covariance), linearised, noise-free",
         }
+
+
+def _about_the_test(
+    column: str, plan: Plan, sigma: float, limits: Limits, violation: float
+) -> dict[str, object]:
+    """What every designed test's JSON says of the test itself."""
+    return {
+        "column": column,
+        "duration_s": plan.duration,
+        "dt_s": plan.dt,
+        "harmonics": plan.harmonics,
+        "sigma_x_m": sigma,
+        "limits": limits._asdict(),
+        "limit_violation": violation,
+    }
 
 
 def _min_off_diagonal(d: np.ndarray) -> float:
@@ -718,15 +728,9 @@ class PrecisionDesign(NamedTuple):
     def as_json(self) -> dict:
         return {
             "for": "identify",
-            "shrink": self.shrink,
             "model": self.model,
-            "column": self.column,
-            "duration_s": self.plan.duration,
-            "dt_s": self.plan.dt,
-            "harmonics": self.plan.harmonics,
-            "sigma_x_m": self.sigma_x,
-            "limits": self.limits._asdict(),
-            "limit_violation": self.violation,
+            **_about_the_test(self.column, self.plan, self.sigma_x, self.limits, self.violation),
+            "shrink": self.shrink,
             "focus": list(self.focus),
             "params": [
                 {
