@@ -751,8 +751,8 @@ def design(
     starts: Annotated[
         int | None,
         typer.Option(
-            help="Optimiser starts in one batch, the first two a chirp and the record's "
-            "input (default: fricjax.design.DesignSettings)",
+            help="Optimiser starts in one batch, the first three the standard tests "
+            "(default: fricjax.design.DesignSettings)",
             min=1,
         ),
     ] = None,

@@ -144,7 +144,7 @@ class DesignSettings(NamedTuple):
     excess of a limit, in units of log(1 + D): 1e4 makes a 1 % excess over the whole test
     cost as much as a factor e in D; seed: PRNG seed."""
 
-    starts: int = 4
+    starts: int = 5
     steps: int = 30
     rate: float = 0.08
     temperature: float = 0.1
@@ -161,7 +161,8 @@ class Design(NamedTuple):
     divergence [K, K]: D_ij (eq. [1]; row i true, column j rival; diagonal 0);
     expected_delta_bic [K, K]: ΔBIC_ij of the pair of records; standard: for standard
     tests of the same duration and peak input (:func:`standard_inputs`), by name, their
-    ``separation`` (D's least off-diagonal value) and ``limit_violation``; limits, plan;
+    ``separation`` (D's least off-diagonal value) and ``limit_violation``, and standard_u
+    their profiles [n]; limits, plan;
     violation: the largest relative excess of a limit by any model [1]."""
 
     t: np.ndarray
@@ -174,6 +175,7 @@ class Design(NamedTuple):
     divergence: np.ndarray
     expected_delta_bic: np.ndarray
     standard: dict[str, dict[str, float]]
+    standard_u: dict[str, np.ndarray]
     limits: Limits
     plan: Plan
     violation: float
@@ -599,6 +601,7 @@ def design(
         divergence=d,
         expected_delta_bic=dbic,
         standard={name: _standard(assess(u)) for name, u in standard.items()},
+        standard_u=standard,
         limits=limits,
         plan=plan,
         violation=violation,
@@ -616,7 +619,8 @@ def _optimise(
     """Adam on ``loss`` of the profile's coefficients from ``settings.starts`` lanes in one
     vmapped batch; returns the profile [n] with the best ``score`` (higher is better) among
     those within the limits (``score``'s second value ≤ :data:`LIMIT_SLACK`), and the
-    standard inputs (:func:`standard_inputs`), whose projections are the first starts."""
+    standard inputs (:func:`standard_inputs`, and the chirp scaled down to keep the limits,
+    :func:`_held`), whose projections are the first starts."""
     grad = jax.value_and_grad(loss)
 
     def run(c0: Array) -> Array:
@@ -629,6 +633,7 @@ def _optimise(
         return c
 
     standard = standard_inputs(problem, plan, limits)
+    standard["chirp within limits"] = _held(standard["chirp"], limits, score)
     # the standard tests, projected onto the profile, are starts: the design then begins
     # where a test engineer would and only moves where the criterion gains
     given = np.stack([project(u, plan, limits) for u in standard.values()])[: settings.starts]
@@ -648,6 +653,27 @@ def _optimise(
             "speed limits; widen --limits or shorten --duration"
         )
     return max(found, key=lambda a: a[0])[1], standard
+
+
+def _held(
+    u: np.ndarray,
+    limits: Limits,
+    score: Callable[[np.ndarray], tuple[float, float]],
+    halvings: int = 12,
+) -> np.ndarray:
+    """``u`` scaled about the middle of the input range by the largest factor in (0, 1]
+    (bisection, to 2⁻¹² of the range) under which every model keeps the travel and speed
+    limits: the standard test a test engineer would run on this rig."""
+    if score(u)[1] <= LIMIT_SLACK:
+        return u
+    lo, hi = 0.0, 1.0
+    for _ in range(halvings):
+        mid = 0.5 * (lo + hi)
+        if score(limits.u_mid + mid * (u - limits.u_mid))[1] <= LIMIT_SLACK:
+            lo = mid
+        else:
+            hi = mid
+    return limits.u_mid + lo * (u - limits.u_mid)
 
 
 def _standard(judged: tuple[np.ndarray, np.ndarray, float]) -> dict[str, float]:

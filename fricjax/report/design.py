@@ -92,12 +92,12 @@ def format_design(d: Design) -> str:
                     f"{d.expected_delta_bic[i, j]:.3g}"
                 )
     lines.append(f"Least separation of any pair: D = {d.separation:.3g}")
+    lines.append("Standard tests of the same length and peak input:")
     for name, std in d.standard.items():
         value, over = std["separation"], std["limit_violation"]
         ratio = d.separation / value if value > 0 else float("inf")
         lines.append(
-            f"  beside a {name} of the same length and peak: D = {value:.3g} "
-            f"(the design: {ratio:.3g} times that)"
+            f"  {name:>24}: D = {value:.3g} (the design: {ratio:.3g} times that)"
             + (f"; it leaves the limits by {100 * over:.2g} %" if over > 0.01 else "")
         )
     lines.append(
