@@ -82,6 +82,7 @@ def one_case(path: Path, out: Path, time_limit: float) -> dict[str, Any] | None:
     named, alternatives = first_finding(diag)
     row: dict[str, Any] = {
         "case": path.stem,
+        "duration_s": truth["duration"],
         "truth": truth["effect"],
         "named": named,
         "alternatives": alternatives,
@@ -131,8 +132,11 @@ def one_case(path: Path, out: Path, time_limit: float) -> dict[str, Any] | None:
     return row
 
 
-def rescore(row: dict[str, Any], out: Path) -> None:
-    """``row``'s pair outcomes and the chirp's excess read again from its folder."""
+def rescore(row: dict[str, Any], out: Path, data: Path) -> None:
+    """``row``'s record length, pair outcomes and the chirp's excess read again from its
+    case file and its folder."""
+    for case in data.glob(f"draw*/{row['case']}.h5"):
+        row["duration_s"] = gen.read_truth(case)["duration"]
     folder = out / row["case"]
     if (folder / "next.json").is_file():
         chirp = json.loads((folder / "next.json").read_text(encoding="utf-8"))
@@ -164,9 +168,9 @@ def report(rows: list[dict[str, Any]], machine: str) -> str:
         "chirp has the same duration and peak force but is not held to the record's travel "
         "and speed: its excess is given.",
         "",
-        "| case | truth | named (alternatives) | design D / chirp D (chirp's excess) | "
-        "pair, designed | pair, chirp | pair, chirp within limits | design s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| case | record s | truth | named (alternatives) | design D / chirp D (chirp's "
+        "excess) | pair, designed | pair, chirp | pair, chirp within limits | design s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
 
     def cell(p: dict[str, Any] | None) -> str:
@@ -178,12 +182,13 @@ def report(rows: list[dict[str, Any]], machine: str) -> str:
     for r in rows:
         if "designed" not in r:
             lines.append(
-                f"| {r['case']} | {r['truth']} | {r['named'] or '—'} | {r.get('skipped', '')} "
-                "| | | | |"
+                f"| {r['case']} | {r.get('duration_s', '')} | {r['truth']} | "
+                f"{r['named'] or '—'} | {r.get('skipped', '')} | | | | |"
             )
             continue
         lines.append(
-            f"| {r['case']} | {r['truth']} | {r['named']} ({', '.join(r['alternatives'])}) | "
+            f"| {r['case']} | {r.get('duration_s', '')} | {r['truth']} | {r['named']} "
+            f"({', '.join(r['alternatives'])}) | "
             f"{r['design_separation']:.3g} / {r['chirp_separation']:.3g} "
             f"({100 * r.get('chirp_violation', float('nan')):.0f} %) | "
             + " | ".join(cell(r.get(label)) for label in ARMS)
@@ -225,7 +230,7 @@ def main() -> None:
     if args.rows is not None:
         rows = [json.loads(line) for line in args.rows.read_text().splitlines() if line[:1] == "{"]
         for r in rows:  # rescored from the files, so a change of the scoring applies
-            rescore(r, args.out)
+            rescore(r, args.out, args.data)
         text = report(rows, machine)
         print(text)
         if args.report is not None:
