@@ -741,12 +741,12 @@ def design(
     limits: Annotated[
         str | None,
         typer.Option(
-            help="F_max,x_range,v_max: peak input [unit of u], travel (lo:hi or a length) "
-            "[m], peak speed [m/s]; an empty field keeps what the record did"
+            help="F_max,x_range,v_max: peak input \\[unit of u], travel (lo:hi or a length) "
+            "\\[m], peak speed \\[m/s]; an empty field keeps what the record did"
         ),
     ] = None,
     duration: Annotated[
-        float | None, typer.Option(help="Length of the new test [s] (default the record's)")
+        float | None, typer.Option(help="Length of the new test \\[s] (default the record's)")
     ] = None,
     starts: Annotated[
         int | None,
