@@ -722,6 +722,15 @@ def standard_inputs(problem: Problem, plan: Plan, limits: Limits) -> dict[str, n
 # -- a test for precision: determine what the record does not ---------------------------
 
 
+class StandardPrecision(NamedTuple):
+    """What a standard test would give (``design --for identify``): each free parameter's σ
+    after it [k], the focus' shrink and the largest relative excess of a limit."""
+
+    sigma_after: np.ndarray
+    shrink: float
+    limit_violation: float
+
+
 class PrecisionDesign(NamedTuple):
     """A test designed to determine parameters (``design --for identify``).
 
@@ -746,7 +755,7 @@ class PrecisionDesign(NamedTuple):
     sigma_before: np.ndarray
     sigma_after: np.ndarray
     shrink: float
-    standard: dict[str, dict[str, list[float] | float]]
+    standard: dict[str, StandardPrecision]
     limits: Limits
     plan: Plan
     violation: float
@@ -765,7 +774,7 @@ class PrecisionDesign(NamedTuple):
                     "sigma_before": float(b),
                     "sigma_after": float(a),
                     **{
-                        f"sigma_after_{k}": float(std["sigma_after"][i])  # type: ignore[index]
+                        f"sigma_after_{k}": float(std.sigma_after[i])
                         for k, std in self.standard.items()
                     },
                 }
@@ -849,13 +858,9 @@ def design_precision(
     def shrink(value: Array) -> float:
         return math.exp((float(value) - now) / (2 * len(idx)))
 
-    def summary(u: np.ndarray) -> dict[str, list[float] | float]:
+    def summary(u: np.ndarray) -> StandardPrecision:
         s_after, value, _, over = judge(jnp.asarray(u))
-        return {
-            "sigma_after": np.asarray(s_after).tolist(),
-            "shrink": shrink(value),
-            "limit_violation": float(over),
-        }
+        return StandardPrecision(np.asarray(s_after), shrink(value), float(over))
 
     return PrecisionDesign(
         t=plan.t,

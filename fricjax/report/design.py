@@ -143,15 +143,13 @@ def format_precision(d: PrecisionDesign) -> str:
             f"{mark} {name:>14} {d.value[i]:11.4g} {d.sigma_before[i]:11.3g} "
             f"{d.sigma_after[i]:11.3g} "
         )
-        row += " ".join(f"{d.standard[n]['sigma_after'][i]:16.3g}" for n in names)  # type: ignore[index]
+        row += " ".join(f"{d.standard[n].sigma_after[i]:16.3g}" for n in names)
         lines.append(row)
     lines.append(
         f"The focus' uncertainty shrinks to {d.shrink:.3g} of now (geometric mean over its "
-        "axes); "
-        + ", ".join(f"with a {n}: {float(s['shrink']):.3g}" for n, s in d.standard.items())  # type: ignore[arg-type]
-        + "."
+        "axes); " + ", ".join(f"with a {n}: {s.shrink:.3g}" for n, s in d.standard.items()) + "."
     )
-    over = {n: float(s["limit_violation"]) for n, s in d.standard.items()}  # type: ignore[arg-type]
+    over = {n: s.limit_violation for n, s in d.standard.items()}
     out = [f"{n} leaves the limits by {100 * v:.2g} %" for n, v in over.items() if v > 0.01]
     lines.append(
         f"Travel {fmt(d.limits.x_lo)}–{fmt(d.limits.x_hi)} m and speed ≤ {fmt(d.limits.speed)} "
