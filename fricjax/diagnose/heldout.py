@@ -1,7 +1,7 @@
 """Held-out checks: does a term's gain carry over to data its fit has not seen?
 
-One interface, :class:`Check` (``judge(before, after, place) -> Verdict``), two checks, both
-in the judge's own metric (output error in units of the record's σ̂_x²):
+Two :class:`~fricjax.diagnose.select.Check` s of one record (``judge(before, after,
+place) -> Verdict``), both in the judge's own metric (output error in units of the record's σ̂_x²):
 
 * :class:`CrossValidation`: blocked K-fold cross-validation of the record. The segments of
   the multiple shooting are dealt to K folds in turn (segment s to fold s mod K), so the
@@ -24,10 +24,9 @@ The gain is ``1 − E_term,held out / E_base,held out``.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any, Protocol
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -35,6 +34,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fricjax.diagnose.judge import Fitted, converged_rows, fit_rows
+from fricjax.diagnose.select import Verdict
 from fricjax.output_error import (
     OutputError,
     OutputErrorSettings,
@@ -44,51 +44,7 @@ from fricjax.output_error import (
 from fricjax.problem import Problem
 from fricjax.refine import refine
 
-__all__ = ["FOLDS", "Check", "CrossValidation", "SecondRecording", "Verdict", "folds"]
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """The outcome of one held-out check of one term.
-
-    Attributes:
-        check: which check (``"split"``, ``"second recording"``).
-        on: the data it judged on, in words (``"last 30 % of the record"``).
-        judged: whether it could judge; ``why`` says why not.
-        gain: ``1 − E_term/E_base`` on the held-out data (NaN when not judged).
-        cost_base, cost_term: the two held-out costs [σ_x²].
-    """
-
-    check: str
-    on: str
-    judged: bool
-    gain: float = math.nan
-    cost_base: float = math.nan
-    cost_term: float = math.nan
-    why: str = ""
-
-    @property
-    def passed(self) -> bool:
-        """Judged, and the term gained."""
-        return self.judged and self.gain > 0
-
-    def as_json(self) -> dict[str, Any]:
-        return {
-            "check": self.check,
-            "on": self.on,
-            "judged": self.judged,
-            "gain": self.gain,
-            "cost_base": self.cost_base,
-            "cost_term": self.cost_term,
-            **({"why": self.why} if self.why else {}),
-        }
-
-
-class Check(Protocol):
-    """A held-out check: ``judge(before, after, place)`` with ``place`` where the term acts
-    (:meth:`~fricjax.diagnose.catalogue.Candidate.location`)."""
-
-    def judge(self, before: Fitted, after: Fitted, place: Mapping[str, Any]) -> Verdict: ...
+__all__ = ["FOLDS", "CrossValidation", "SecondRecording", "folds"]
 
 
 class _StatesOnly(eqx.Module):

@@ -66,6 +66,8 @@ from scipy import stats
 
 from fricjax.diagnose.catalogue import CATALOGUE, candidate, grid_size
 from fricjax.diagnose.evidence import NearRest
+from fricjax.diagnose.select import Gain
+from fricjax.diagnose.stages import Clock
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
 from fricjax.output_error import (
@@ -81,6 +83,7 @@ from fricjax.refine import covariance
 __all__ = [
     "CandidateFit",
     "Fitted",
+    "OutputErrorJudge",
     "Superset",
     "converged_rows",
     "fit_base",
@@ -233,6 +236,15 @@ class CandidateFit:
     delta_bic: float
     params: dict[str, float]
     looks: int = 1
+
+    @property
+    def name(self) -> str:
+        return self.effect
+
+    @property
+    def rank(self) -> float:
+        """ΔBIC: the rule takes the passing candidates in its order."""
+        return self.delta_bic
 
     @property
     def p_value(self) -> float:
@@ -690,3 +702,68 @@ def starts(current: Fitted, effect: str, band: NearRest, n_starts: int) -> list[
 def remaining(current: Fitted) -> list[str]:
     """The superset's effects not yet in ``current``'s model."""
     return [e for e in current.superset.effects if e not in current.active]
+
+
+@dataclass(frozen=True)
+class OutputErrorJudge:
+    """The judge of one record for :func:`~fricjax.diagnose.select.select`: every remaining
+    catalogue term refitted by output error from each of its ``n_starts`` starts
+    (:func:`starts`, :func:`fit_candidates`), the EMS and open-loop simulation error
+    reported beside each (:func:`record_gains`), ambiguity by :func:`vuong`. A term no
+    held-out check can judge is not named (``standalone`` False): one record always has a
+    check (cross-validation) unless it is one segment long, too short to name anything."""
+
+    settings: OutputErrorSettings
+    nu: int
+    band: NearRest
+    n_starts: int
+    standalone: bool = False
+
+    def candidates(self, current: Fitted) -> list[str]:
+        return remaining(current)
+
+    def fit(self, current: Fitted, names: Sequence[str], clock: Clock) -> list[CandidateFit]:
+        todo = []
+        clock.note("ranking the candidates' starts")
+        for effect in names:
+            if clock.over("candidates"):
+                clock.untested("candidates", effect)
+                continue
+            todo.append((effect, starts(current, effect, self.band, self.n_starts)))
+        clock.note(f"output-error fits of {len(todo)} candidates")
+        fits = (
+            fit_candidates(
+                current, todo, self.settings, self.nu, lambda: not clock.over("candidates")
+            )
+            if todo
+            else []
+        )
+        fitted = {f.effect for f in fits}
+        for effect, _ in todo:
+            if effect not in fitted:  # the limit (or Ctrl-C) came first
+                clock.untested("candidates", effect)
+        return fits
+
+    def confirm(self, fit: CandidateFit) -> CandidateFit:
+        return rebased(fit, self.settings, self.nu)
+
+    def base(self, fit: CandidateFit) -> Fitted:
+        return fit.base
+
+    def model(self, fit: CandidateFit) -> Fitted:
+        return fit.fitted
+
+    def place(self, fit: CandidateFit) -> Mapping[str, Any]:
+        return candidate(fit.effect).location(fit.params, fit.base.superset.record)
+
+    def gains(self, fit: CandidateFit) -> tuple[Gain, ...]:
+        ems, sim = record_gains(fit.base, fit.fitted)
+        return (Gain(EMS, ems), Gain(SIMULATION, sim))
+
+    def vuong(self, best: CandidateFit, other: CandidateFit) -> tuple[float, int]:
+        return vuong(best.fitted, other.fitted)
+
+
+#: The figures reported beside a finding of one record (:meth:`OutputErrorJudge.gains`).
+EMS = "equation-error EMS"
+SIMULATION = "open-loop simulation error"

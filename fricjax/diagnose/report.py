@@ -26,7 +26,8 @@ from fricjax.report.tables import fmt, p_text
 
 if TYPE_CHECKING:
     from fricjax.diagnose.judge import CandidateFit, Fitted
-    from fricjax.diagnose.run import Diagnosis, Step
+    from fricjax.diagnose.run import Diagnosis
+    from fricjax.diagnose.select import Step
 
 _PLACES = {
     "time_s": ("t", "s"),
@@ -230,7 +231,7 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
     return blocks
 
 
-def _candidate_row(st: Step, f: CandidateFit) -> tuple[str, ...]:
+def _candidate_row(st: Step[Fitted, CandidateFit], f: CandidateFit) -> tuple[str, ...]:
     """One candidate's row: its refit's statistic and what the rule made of it."""
     decided = {d.fit.effect: d for d in st.decisions}
     chosen = st.chosen

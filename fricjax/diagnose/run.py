@@ -6,10 +6,12 @@ its estimate), the record's own noise (:mod:`~fricjax.diagnose.evidence`), the c
 (:mod:`~fricjax.diagnose.judge`), the held-out checks (:mod:`~fricjax.diagnose.heldout`),
 the report (:mod:`~fricjax.diagnose.report`).
 
-The rule (:func:`decide`). Forward selection up to ``max_terms``. At each step every
-applicable candidate is refitted by output error from each of its starts (one batched
-program, :func:`~fricjax.diagnose.judge.fit_candidates`); one metric judges, the output error
-in units of the record's own noise. A candidate passes where its calibrated p (the best of
+The rule: forward selection up to ``max_terms`` (:func:`~fricjax.diagnose.select.select`,
+the driver the diagnosis across recordings shares) with the output-error judge
+(:class:`~fricjax.diagnose.judge.OutputErrorJudge`). At each step every applicable
+candidate is refitted by output error from each of its starts (one batched program,
+:func:`~fricjax.diagnose.judge.fit_candidates`); one metric judges, the output error in
+units of the record's own noise. A candidate passes where its calibrated p (the best of
 its shapes, :func:`~fricjax.diagnose.judge.looks`) is below ``α/C`` (C candidates at that
 step) and its ΔBIC above ``min_delta_bic``. The passing candidates are taken by ΔBIC; the
 first whose gain holds in cross-validation (every held-out check that judges it gains,
@@ -41,21 +43,19 @@ import numpy as np
 
 from fricjax.diagnose.catalogue import candidate
 from fricjax.diagnose.evidence import Evidence, NearRest, near_rest_band, record_noise
-from fricjax.diagnose.heldout import Check, CrossValidation, SecondRecording, Verdict
+from fricjax.diagnose.heldout import CrossValidation, SecondRecording
 from fricjax.diagnose.judge import (
+    EMS,
+    SIMULATION,
     CandidateFit,
     Fitted,
+    OutputErrorJudge,
     Superset,
     fit_base,
-    fit_candidates,
     lack_of_fit_p,
-    rebased,
-    record_gains,
-    remaining,
     simulation_error,
-    starts,
-    vuong,
 )
+from fricjax.diagnose.select import Check, Decision, Rule, Step, refused_by_step, select
 from fricjax.diagnose.stages import LIMITED, TIME_LIMIT_S, Clock, OnStage
 from fricjax.errors import FricjaxError, where
 from fricjax.identify import IdentifySettings, identify
@@ -124,6 +124,11 @@ class DiagnoseSettings:
             limits=dict(self.stage_limits), total=self.time_limit, on_stage=on_stage, stop=stop
         )
 
+    @property
+    def rule(self) -> Rule:
+        """The levels of forward selection (:func:`~fricjax.diagnose.select.select`)."""
+        return Rule(self.alpha, self.min_delta_bic, self.max_terms, self.ambiguity)
+
     def output_error(self, evidence: Evidence) -> OutputErrorSettings:
         """The output-error settings of every fit: residual in units of the record's σ̂_x."""
         return OutputErrorSettings(
@@ -181,53 +186,6 @@ class DiagnoseSettings:
         return cls(**values)
 
 
-@dataclass(frozen=True)
-class Alternative:
-    """A passing candidate the record cannot tell from the named one: Vuong's ``t`` of the
-    named fit over this one (``dof`` degrees of freedom) and its one-sided p."""
-
-    fit: CandidateFit
-    t: float
-    dof: int
-    p_value: float
-
-
-@dataclass(frozen=True)
-class Decision:
-    """What the rule made of one candidate that passed the statistics: its held-out
-    verdicts (they decide), its record gains in EMS and simulation error (reported only),
-    and the candidates it cannot be told from."""
-
-    fit: CandidateFit
-    ems_gain: float
-    simulation_gain: float
-    verdicts: tuple[Verdict, ...]
-    alternatives: tuple[Alternative, ...] = ()
-
-    @property
-    def named(self) -> bool:
-        """Every held-out check that judges gains, and at least one judges."""
-        judged = [v for v in self.verdicts if v.judged]
-        return bool(judged) and all(v.passed for v in judged)
-
-
-@dataclass(frozen=True)
-class Step:
-    """One step of forward selection: every candidate's refit, the decisions on the fits
-    that passed the statistics (best first, up to the named one), the per-candidate limit
-    α/C, and the model before."""
-
-    current: Fitted
-    fits: tuple[CandidateFit, ...]
-    decisions: tuple[Decision, ...]
-    limit: float
-    min_delta_bic: float
-
-    @property
-    def chosen(self) -> Decision | None:
-        return next((d for d in self.decisions if d.named), None)
-
-
 @dataclass
 class Diagnosis:
     """Everything diagnose found, as plain data plus the fitted models."""
@@ -239,7 +197,7 @@ class Diagnosis:
     problem: Problem
     base: Fitted
     final: Fitted
-    steps: list[Step]
+    steps: list[Step[Fitted, CandidateFit]]
     evidence: Evidence
     near_rest: NearRest
     identify_ems: float
@@ -292,12 +250,12 @@ def _fit_json(f: CandidateFit) -> dict[str, Any]:
     }
 
 
-def _decision_json(d: Decision) -> dict[str, Any]:
+def _decision_json(d: Decision[CandidateFit]) -> dict[str, Any]:
     return {
         "effect": d.fit.effect,
         "named": d.named,
-        "record_ems_gain": d.ems_gain,
-        "record_simulation_gain": d.simulation_gain,
+        "record_ems_gain": d.gain(EMS),
+        "record_simulation_gain": d.gain(SIMULATION),
         "heldout": [v.as_json() for v in d.verdicts],
         "alternatives": [a.fit.effect for a in d.alternatives],
     }
@@ -314,87 +272,6 @@ def jsonable(obj: Any) -> Any:
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
-
-
-def decide(
-    problem: Problem,
-    base: Fitted,
-    settings: DiagnoseSettings,
-    evidence: Evidence,
-    band: NearRest,
-    checks: list[Check],
-    clock: Clock,
-) -> list[Step]:
-    """Forward selection by the one rule (module docstring)."""
-    oe = settings.output_error(evidence)
-    steps: list[Step] = []
-    current = base
-    for _ in range(settings.max_terms):
-        cands = remaining(current)
-        if not cands:
-            break
-        todo = []
-        with clock.stage("candidates", "ranking the candidates' starts"):
-            for effect in cands:
-                if clock.over("candidates"):
-                    clock.untested("candidates", effect)
-                    continue
-                todo.append((effect, starts(current, effect, band, settings.n_starts)))
-        with clock.stage("candidates", f"output-error fits of {len(todo)} candidates"):
-
-            def more() -> bool:
-                return not clock.over("candidates")
-
-            fits = fit_candidates(current, todo, oe, evidence.nu, more) if todo else []
-            fitted = {f.effect for f in fits}
-            for effect, _ in todo:
-                if effect not in fitted:  # the limit (or Ctrl-C) came first
-                    clock.untested("candidates", effect)
-        limit = settings.alpha / len(cands)
-        passing = sorted(
-            (f for f in fits if f.passes(limit, settings.min_delta_bic)),
-            key=lambda f: -f.delta_bic,
-        )
-        decisions: list[Decision] = []
-        with clock.stage("heldout", "held-out checks"):
-            for i, f in enumerate(passing):
-                if clock.over("heldout"):
-                    clock.untested("heldout", f.effect)
-                    continue
-                clock.note(f"cross-validating {f.effect}")
-                f = rebased(f, oe, evidence.nu)
-                if not f.passes(limit, settings.min_delta_bic):
-                    continue
-                place = candidate(f.effect).location(f.params, problem)
-                verdicts = tuple(ch.judge(f.base, f.fitted, place) for ch in checks)
-                gains = record_gains(f.base, f.fitted)
-                others = [g for g in passing[i + 1 :] if g.effect != f.effect]
-                decision = Decision(f, *gains, verdicts, _alternatives(f, others, settings))
-                decisions.append(decision)
-                if decision.named:
-                    break
-        step = Step(current, tuple(fits), tuple(decisions), limit, settings.min_delta_bic)
-        steps.append(step)
-        if step.chosen is None:
-            break
-        current = step.chosen.fit.fitted
-    return steps
-
-
-def _alternatives(
-    named: CandidateFit, others: list[CandidateFit], settings: DiagnoseSettings
-) -> tuple[Alternative, ...]:
-    """The passing candidates the record does not prefer ``named`` over (Vuong's test at
-    ``settings.ambiguity``, one-sided), best ΔBIC first."""
-    from scipy import stats
-
-    out = []
-    for g in others:
-        t, dof = vuong(named.fitted, g.fitted)
-        p = float(stats.t.sf(t, dof))
-        if p >= settings.ambiguity:
-            out.append(Alternative(g, t, dof, p))
-    return tuple(out)
 
 
 def diagnose(
@@ -433,10 +310,11 @@ def diagnose(
             return True
 
         base = fit_base(Superset.build(problem), problem.spec.as_dict(run.value), oe, more)
-    checks: list[Check] = [CrossValidation(oe)]
+    checks: list[Check[Fitted]] = [CrossValidation(oe)]
     if validation is not None:
         checks.append(SecondRecording(_undecimated(validation), oe))
-    steps = decide(problem, base, settings, evidence, band, checks, clock)
+    judge = OutputErrorJudge(oe, evidence.nu, band, settings.n_starts)
+    steps = select(judge, checks, base, settings.rule, clock)
     named = [st.chosen for st in steps if st.chosen is not None]
     final = named[-1].fit.fitted if named else base
     findings = [_finding(problem, d, st) for st in steps if (d := st.chosen) is not None]
@@ -499,22 +377,18 @@ def _share(f: CandidateFit) -> float:
     return float(min(max(f.lr / excess, 0.0), 1.0)) if excess > 0 else math.nan
 
 
-def _warnings(d: Decision) -> list[str]:
+def _warnings(d: Decision[CandidateFit]) -> list[str]:
     """Plain warnings where the term makes what a user sees worse (reported, not judged)."""
     out = []
-    if d.ems_gain < 0:
-        out.append(
-            f"the record's equation-error EMS gets worse with it ({100 * d.ems_gain:+.1f} %)"
-        )
-    if d.simulation_gain < 0:
-        out.append(
-            f"the record's open-loop simulation error gets worse with it "
-            f"({100 * d.simulation_gain:+.1f} %)"
-        )
+    for g in d.gains:
+        if g.value < 0:
+            out.append(f"the record's {g.metric} gets worse with it ({100 * g.value:+.1f} %)")
     return out
 
 
-def _finding(problem: Problem, d: Decision, step: Step) -> dict[str, Any]:
+def _finding(
+    problem: Problem, d: Decision[CandidateFit], step: Step[Fitted, CandidateFit]
+) -> dict[str, Any]:
     """One named finding of diagnosis.json; an ambiguity set keeps its best member as
     ``effect`` and the others under ``alternatives``."""
     f = d.fit
@@ -548,8 +422,8 @@ def _finding(problem: Problem, d: Decision, step: Step) -> dict[str, Any]:
         "lr": f.lr,
         "misfit_share": share,
         "test": "output error",
-        "record_ems_gain": d.ems_gain,
-        "record_simulation_gain": d.simulation_gain,
+        "record_ems_gain": d.gain(EMS),
+        "record_simulation_gain": d.gain(SIMULATION),
         "warnings": _warnings(d),
         "heldout": [v.as_json() for v in d.verdicts],
         "alternatives": [
@@ -569,27 +443,11 @@ def _finding(problem: Problem, d: Decision, step: Step) -> dict[str, Any]:
     }
 
 
-def refused_by_step(steps: Sequence[Step]) -> list[tuple[Decision, list[Decision]]]:
-    """``(best, others)`` for each step that refused candidates, best = the largest ΔBIC.
-
-    The candidates refused at one step are rival descriptions of the one residual the model
-    leaves there, so they make one ``unexplained`` finding, not one each. A term refused at
-    one step and named at a later one is a finding, not both; one refused at several steps
-    counts at the first."""
-    seen = {st.chosen.fit.effect for st in steps if st.chosen is not None}
-    out = []
-    for st in steps:
-        rivals = [d for d in st.decisions if not d.named and d.fit.effect not in seen]
-        seen |= {d.fit.effect for d in rivals}
-        if rivals:
-            best = max(rivals, key=lambda d: d.fit.delta_bic)
-            out.append(
-                (best, sorted((d for d in rivals if d is not best), key=lambda d: -d.fit.delta_bic))
-            )
-    return out
-
-
-def _refused(problem: Problem, d: Decision, rivals: Sequence[Decision] = ()) -> dict[str, Any]:
+def _refused(
+    problem: Problem,
+    d: Decision[CandidateFit],
+    rivals: Sequence[Decision[CandidateFit]] = (),
+) -> dict[str, Any]:
     """``unexplained`` at the place of a candidate that passed the statistics but not
     cross-validation: the record holds something there that this term does not explain in
     a way that carries over to data its fit has not seen. ``rivals``: the other candidates

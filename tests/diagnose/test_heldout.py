@@ -1,6 +1,6 @@
-"""Held-out checks and the rule that uses them (fricjax.diagnose.heldout, run.Decision): a term
-is named only where it gains in every check that can judge it, in the judge's own metric;
-the record's EMS and simulation error are reported beside it, never a veto; the folds of the
+"""Held-out checks of one record (fricjax.diagnose.heldout) and what the single-record report
+makes of their verdicts: the record's EMS and simulation error are reported beside a term,
+never a veto; a refused term is ``unexplained`` at its place; the folds of the
 cross-validation interleave over the whole record."""
 
 from __future__ import annotations
@@ -11,8 +11,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from fricjax.diagnose.heldout import Verdict, folds
-from fricjax.diagnose.run import Decision, _refused, _warnings
+from fricjax.diagnose.heldout import folds
+from fricjax.diagnose.judge import EMS, SIMULATION
+from fricjax.diagnose.run import _refused, _warnings
+from fricjax.diagnose.select import Decision, Gain, Verdict
 from fricjax.output_error import OutputErrorSettings
 
 
@@ -37,7 +39,8 @@ def _decision(ems: float, sim: float, *verdicts: Verdict) -> Decision:
         delta_bic=30.0,
         p_value=1e-6,
     )
-    return Decision(fit, ems, sim, verdicts)  # type: ignore[arg-type]
+    gains = (Gain(EMS, ems), Gain(SIMULATION, sim))
+    return Decision(fit, verdicts, gains)  # type: ignore[arg-type]
 
 
 def test_the_record_s_ems_and_simulation_warn_but_never_refuse() -> None:
@@ -47,15 +50,6 @@ def test_the_record_s_ems_and_simulation_warn_but_never_refuse() -> None:
     warnings = _warnings(worse)
     assert len(warnings) == 2 and "EMS gets worse" in warnings[0] and "-15.0 %" in warnings[0]
     assert _warnings(_decision(0.1, math.nan, good)) == []
-
-
-def test_a_term_must_gain_in_every_check_that_judges_and_one_must_judge() -> None:
-    cv_gain = Verdict("cross-validation", "5 folds", True, 0.2, 10.0, 8.0)
-    second_loss = Verdict("second recording", "the second recording", True, -0.1, 10.0, 11.0)
-    untested = Verdict("cross-validation", "1 fold", False, why="one segment long")
-    assert not _decision(0.1, 0.1, cv_gain, second_loss).named
-    assert _decision(0.1, 0.1, untested, Verdict("second recording", "2nd", True, 0.3)).named
-    assert not _decision(0.1, 0.1, untested).named  # no check judges: not named
 
 
 def test_a_refused_candidate_is_unexplained_at_its_place_and_says_why() -> None:

@@ -5,12 +5,11 @@ finding names the place that misfits most, never a catalogue effect."""
 from __future__ import annotations
 
 from types import SimpleNamespace
-from typing import Any, cast
 
 import numpy as np
 import pytest
 
-from fricjax.diagnose.run import DiagnoseSettings, Step, _unexplained, refused_by_step
+from fricjax.diagnose.run import DiagnoseSettings, _unexplained
 from fricjax.errors import FricjaxError
 from fricjax.params import Param, ParamSpec
 
@@ -63,29 +62,3 @@ def test_unexplained_names_the_segment_that_misfits_most() -> None:
     assert f["effect"] == "unexplained" and f["p_value"] == 1e-9
     assert f["location"]["time_s"] == [pytest.approx(0.15), pytest.approx(0.199)]
     assert f["delta_bic"] > 0  # the excess over the residual degrees of freedom
-
-
-def _decision(effect: str, delta_bic: float, named: bool = False) -> Any:
-    return SimpleNamespace(fit=SimpleNamespace(effect=effect, delta_bic=delta_bic), named=named)
-
-
-def _step(*decisions: Any) -> Step:
-    """A step whose decisions carry only what the grouping reads."""
-    return Step(cast(Any, None), (), decisions, 0.01, 10)
-
-
-def _groups(steps: list[Step]) -> list[tuple[str, list[str]]]:
-    return [(b.fit.effect, [r.fit.effect for r in rest]) for b, rest in refused_by_step(steps)]
-
-
-def test_the_candidates_refused_at_one_step_make_one_finding_led_by_the_best() -> None:
-    d = _decision
-    steps = [
-        _step(d("drift", 347), d("bump", 339), d("stribeck", 75, True)),
-        _step(d("bump", 120), d("impact", 117), d("harmonic", 46)),
-        _step(d("drift", 30)),
-    ]
-    # one finding a step; bump and drift counted at the step that first refused them
-    assert _groups(steps) == [("drift", ["bump"]), ("impact", ["harmonic"])]
-    # a term refused first and named later is a finding only
-    assert _groups([steps[1], _step(d("impact", 90, True))]) == [("bump", ["harmonic"])]

@@ -1,0 +1,333 @@
+"""Forward selection: the one rule of every diagnosis, of one recording or of several.
+
+A diagnosis is a :class:`Judge` (how candidates are fitted and tested against the current
+model), a list of held-out :class:`Check` s (does a candidate's gain carry over to data its
+fit has not seen), a :class:`Rule` (the levels) and a
+:class:`~fricjax.diagnose.stages.Clock`. :func:`select` runs the same steps for every
+diagnosis, up to ``max_terms``:
+
+1. every candidate the judge offers for the current model is fitted
+   (:meth:`Judge.fit`; stage ``candidates``);
+2. a candidate passes where its p (the judge's calibrated one) is below ``α/C``
+   (Bonferroni over the C candidates of the step: valid whatever their dependence) and its
+   ΔBIC above ``min_delta_bic``;
+3. the passing candidates are taken by rank (the judge's measure of how much of the record
+   each explains, less its penalty), best first; each is looked at once more
+   (:meth:`Judge.confirm`: a fit may have stopped short), then judged by every check
+   (stage ``heldout``). The first whose every judging check gains is named, with the
+   passing candidates the record cannot tell from it (:meth:`Judge.vuong` not significant
+   at ``ambiguity``): an ambiguity set, the best first. Where no check can judge a
+   candidate, it is named on its statistics only if the judge says a term may stand so
+   (:attr:`Judge.standalone`), and the finding says that no check could judge it.
+4. the named candidate's model is the next step's current model; a step that names none
+   ends the selection.
+
+What a time limit leaves out is recorded on the clock (never named); a limit is checked
+between units of work (one candidate's fits, one candidate's held-out checks).
+
+The single-record diagnosis (:mod:`fricjax.diagnose.run`) plugs in the output-error judge
+with cross-validation; the diagnosis across recordings (:mod:`fricjax.diagnose.across`) the
+joint judge with leaving one recording out, and run-to-run drift as one more kind of
+candidate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
+
+from scipy import stats
+
+from fricjax.diagnose.stages import Clock
+
+__all__ = [
+    "Alternative",
+    "Check",
+    "Decision",
+    "Gain",
+    "Judge",
+    "Rule",
+    "Scored",
+    "Step",
+    "Verdict",
+    "select",
+]
+
+
+class Scored(Protocol):
+    """A candidate fitted beside the current model, as the rule reads it."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def p_value(self) -> float: ...
+
+    @property
+    def delta_bic(self) -> float: ...
+
+    @property
+    def rank(self) -> float:
+        """How much of the record it explains less its penalty (larger: better)."""
+        ...
+
+    def passes(self, limit: float, min_delta_bic: float) -> bool: ...
+
+
+M = TypeVar("M")
+F = TypeVar("F", bound=Scored)
+M_contra = TypeVar("M_contra", contravariant=True)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The outcome of one held-out check of one candidate.
+
+    Attributes:
+        check: which check (``"cross-validation"``, ``"leave one recording out"``).
+        on: the data it judged on, in words.
+        judged: whether it could judge; ``why`` says why not.
+        gain: ``1 − E_term/E_base`` on the held-out data (NaN when not judged).
+        cost_base, cost_term: the two held-out costs (the judge's unit).
+        parts: the check's own parts (a fold each), where it reports them.
+    """
+
+    check: str
+    on: str
+    judged: bool
+    gain: float = math.nan
+    cost_base: float = math.nan
+    cost_term: float = math.nan
+    why: str = ""
+    parts: tuple[Verdict, ...] = ()
+
+    @property
+    def passed(self) -> bool:
+        """Judged, and the term gained."""
+        return self.judged and self.gain > 0
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "check": self.check,
+            "on": self.on,
+            "judged": self.judged,
+            "gain": self.gain,
+            "cost_base": self.cost_base,
+            "cost_term": self.cost_term,
+            **({"why": self.why} if self.why else {}),
+            **({"parts": [p.as_json() for p in self.parts]} if self.parts else {}),
+        }
+
+
+class Check(Protocol[M_contra]):
+    """A held-out check: ``judge(before, after, place)``, ``place`` where the candidate acts
+    (:meth:`~fricjax.diagnose.catalogue.Candidate.location`)."""
+
+    def judge(self, before: M_contra, after: M_contra, place: Mapping[str, Any]) -> Verdict: ...
+
+
+@dataclass(frozen=True)
+class Gain:
+    """A figure a user sees, before and after a candidate, reported beside it and never
+    judged: ``1 − after/before`` of ``metric`` (NaN where it cannot be computed)."""
+
+    metric: str
+    value: float
+
+
+@dataclass(frozen=True)
+class Alternative(Generic[F]):
+    """A passing candidate the record cannot tell from the named one: the judge's Vuong
+    ``t`` of the named fit over this one (``dof`` degrees of freedom) and its one-sided p."""
+
+    fit: F
+    t: float
+    dof: int
+    p_value: float
+
+
+@dataclass(frozen=True)
+class Decision(Generic[F]):
+    """What the rule made of one candidate that passed the statistics: its held-out
+    verdicts (they decide), the figures reported beside it (``gains``, never judged), the
+    candidates it cannot be told from, and whether it may stand on its statistics where no
+    check judges (:attr:`Judge.standalone`)."""
+
+    fit: F
+    verdicts: tuple[Verdict, ...]
+    gains: tuple[Gain, ...] = ()
+    alternatives: tuple[Alternative[F], ...] = ()
+    standalone: bool = False
+
+    @property
+    def named(self) -> bool:
+        """Every held-out check that judges gains, and at least one judges (or none can
+        and the candidate may stand on its statistics)."""
+        judged = [v for v in self.verdicts if v.judged]
+        if not judged:
+            return self.standalone
+        return all(v.passed for v in judged)
+
+    def gain(self, metric: str) -> float:
+        """The reported gain of ``metric`` (NaN where not reported)."""
+        return next((g.value for g in self.gains if g.metric == metric), math.nan)
+
+
+@dataclass(frozen=True)
+class Step(Generic[M, F]):
+    """One step of forward selection: every candidate's fit, the decisions on the fits
+    that passed the statistics (best first, up to the named one), the per-candidate limit
+    α/C, and the model before."""
+
+    current: M
+    fits: tuple[F, ...]
+    decisions: tuple[Decision[F], ...]
+    limit: float
+    min_delta_bic: float
+
+    @property
+    def chosen(self) -> Decision[F] | None:
+        return next((d for d in self.decisions if d.named), None)
+
+
+class Judge(Protocol[M, F]):
+    """How one diagnosis fits and compares its candidates (module docstring)."""
+
+    #: whether a candidate that no held-out check can judge may be named on its statistics
+    standalone: bool
+
+    def candidates(self, current: M) -> list[str]:
+        """The candidates' names that may be added to ``current``."""
+        ...
+
+    def fit(self, current: M, names: Sequence[str], clock: Clock) -> list[F]:
+        """Each named candidate fitted beside ``current``; one a time limit leaves out is
+        recorded on ``clock`` as untested and absent from the result."""
+        ...
+
+    def confirm(self, fit: F) -> F:
+        """A passing candidate looked at once more before its checks."""
+        ...
+
+    def base(self, fit: F) -> M:
+        """The model ``fit`` is judged against."""
+        ...
+
+    def model(self, fit: F) -> M:
+        """The model with the candidate."""
+        ...
+
+    def place(self, fit: F) -> Mapping[str, Any]:
+        """Where the candidate acts."""
+        ...
+
+    def gains(self, fit: F) -> tuple[Gain, ...]:
+        """Figures reported beside the candidate (never judged)."""
+        ...
+
+    def vuong(self, best: F, other: F) -> tuple[float, int]:
+        """Vuong's t of ``best`` over ``other`` and its degrees of freedom."""
+        ...
+
+
+@dataclass(frozen=True)
+class Rule:
+    """The levels of the rule (justified on
+    :class:`~fricjax.diagnose.run.DiagnoseSettings`): family-wise ``alpha``,
+    ``min_delta_bic``, ``max_terms``, and the level ``ambiguity`` of Vuong's test that tells
+    a passing candidate from the named one."""
+
+    alpha: float = 0.01
+    min_delta_bic: float = 10.0
+    max_terms: int = 3
+    ambiguity: float = 0.05
+
+
+def select(
+    judge: Judge[M, F],
+    checks: Sequence[Check[M]],
+    start: M,
+    rule: Rule,
+    clock: Clock,
+) -> list[Step[M, F]]:
+    """Forward selection from ``start`` by the one rule (module docstring)."""
+    steps: list[Step[M, F]] = []
+    current = start
+    for _ in range(rule.max_terms):
+        names = judge.candidates(current)
+        if not names:
+            break
+        with clock.stage("candidates", f"fits of {len(names)} candidates"):
+            fits = judge.fit(current, names, clock)
+        limit = rule.alpha / len(names)
+        passing = sorted(
+            (f for f in fits if f.passes(limit, rule.min_delta_bic)), key=lambda f: -f.rank
+        )
+        decisions: list[Decision[F]] = []
+        with clock.stage("heldout", "held-out checks"):
+            for i, f in enumerate(passing):
+                if clock.over("heldout"):
+                    clock.untested("heldout", f.name)
+                    continue
+                clock.note(f"held-out checks of {f.name}")
+                f = judge.confirm(f)
+                if not f.passes(limit, rule.min_delta_bic):
+                    continue
+                verdicts = tuple(
+                    ch.judge(judge.base(f), judge.model(f), judge.place(f)) for ch in checks
+                )
+                others = [g for g in passing[i + 1 :] if g.name != f.name]
+                decision = Decision(
+                    f,
+                    verdicts,
+                    judge.gains(f),
+                    _alternatives(judge, f, others, rule.ambiguity),
+                    judge.standalone,
+                )
+                decisions.append(decision)
+                if decision.named:
+                    break
+        step = Step(current, tuple(fits), tuple(decisions), limit, rule.min_delta_bic)
+        steps.append(step)
+        if step.chosen is None:
+            break
+        current = judge.model(step.chosen.fit)
+    return steps
+
+
+def _alternatives(
+    judge: Judge[M, F], named: F, others: Sequence[F], level: float
+) -> tuple[Alternative[F], ...]:
+    """The passing candidates the record does not prefer ``named`` over (Vuong's test at
+    ``level``, one-sided), in rank order."""
+    out = []
+    for g in others:
+        t, dof = judge.vuong(named, g)
+        p = float(stats.t.sf(t, dof))
+        if p >= level:
+            out.append(Alternative(g, t, dof, p))
+    return tuple(out)
+
+
+def refused_by_step(
+    steps: Sequence[Step[Any, Any]],
+) -> list[tuple[Decision[Any], list[Decision[Any]]]]:
+    """``(best, others)`` for each step that refused candidates, best = the largest rank.
+
+    The candidates refused at one step are rival descriptions of the one residual the model
+    leaves there, so they make one ``unexplained`` finding, not one each. A candidate
+    refused at one step and named at a later one is a finding, not both; one refused at
+    several steps counts at the first."""
+    seen = {st.chosen.fit.name for st in steps if st.chosen is not None}
+    out = []
+    for st in steps:
+        rivals = [d for d in st.decisions if not d.named and d.fit.name not in seen]
+        seen |= {d.fit.name for d in rivals}
+        if rivals:
+            best = max(rivals, key=lambda d: d.fit.rank)
+            out.append(
+                (best, sorted((d for d in rivals if d is not best), key=lambda d: -d.fit.rank))
+            )
+    return out
