@@ -56,13 +56,13 @@ def run_plant(truth: dict[str, Any], t: np.ndarray, u: np.ndarray, seed: int) ->
 
 
 def first_finding(diag: dict[str, Any]) -> tuple[str, list[str]]:
-    """The first named catalogue term and its alternatives, in either diagnosis.json: one
-    recording's (``effect``, ``alternatives``) or several recordings' (``kind`` "term"
-    with its ``name``; a "drift" finding names no term)."""
+    """The first named finding and its alternatives, in either diagnosis.json (one layout
+    for one recording and several; a run-to-run drift is named ``drift of P``)."""
     for f in diag.get("findings", []):
-        effect = f.get("effect") or (f.get("name") if f.get("kind") == "term" else None)
-        if effect and effect != "unexplained":
-            return effect, [a["effect"] for a in f.get("alternatives", [])]
+        if f["effect"] != "unexplained":
+            return f.get("name") or f["effect"], [
+                a.get("name") or a["effect"] for a in f.get("alternatives", [])
+            ]
     return "", []
 
 

@@ -545,22 +545,24 @@ def diagnose_recordings(
 ) -> tuple[Any, dict[str, Path]]:
     """``fricjax diagnose REC1 REC2 ...``: the diagnosis across recordings of one plant on
     their joint fit (:mod:`fricjax.diagnose.across`: shared catalogue terms judged by
-    leaving one recording out, run-to-run drift); writes DIR/diagnosis.json and
-    DIR/report.md (atomic).
+    leaving one recording out, run-to-run drift, in the one forward selection of
+    :mod:`fricjax.diagnose.select`); writes DIR/diagnosis.json, DIR/report.md and
+    DIR/report.html (atomic).
 
     ``overrides``: ``alpha``, ``max_terms``, ``time_limit`` from the command line (the
-    ``[diagnose]`` table's ``alpha``, ``min_delta_bic``, ``max_terms``, ``time_limit``
-    otherwise, ``[diagnose.stage_limits]`` where tighter than the defaults of
+    ``[diagnose]`` table's ``alpha``, ``min_delta_bic``, ``max_terms``, ``ambiguity``,
+    ``time_limit`` otherwise, ``[diagnose.stage_limits]`` where tighter than the defaults of
     :mod:`fricjax.diagnose.across`); ``effects``: the catalogue entries to try (default
     all); ``on_stage``: progress events, as for one recording."""
-    from fricjax.diagnose.across import across_clock, diagnose_across, write_across
+    from fricjax.diagnose.across import across_clock, diagnose_across
+    from fricjax.diagnose.report import write_across
     from fricjax.joint import JointSettings
 
     if len(recordings) < 2:
         raise FricjaxError("diagnose: a diagnosis across recordings needs at least two")
     inputs: dict[str, str | Path | None] = {f"recording {r}": r for r in recordings}
     check_outputs(
-        [Path(out) / "diagnosis.json", Path(out) / "report.md"],
+        [Path(out) / "diagnosis.json", Path(out) / "report.md", Path(out) / "report.html"],
         {**inputs, "--config": config},
         "--out",
     )
@@ -571,16 +573,7 @@ def diagnose_recordings(
     clock = across_clock(settings.stage_limits, total, on_stage)
     recs = alike_recordings(recordings, mass=mass)
     problems = [build_problem(rec, cfg) for rec in recs]
-    diag = diagnose_across(
-        problems,
-        ident,
-        joint,
-        alpha=settings.alpha,
-        min_delta_bic=settings.min_delta_bic,
-        max_terms=settings.max_terms,
-        effects=effects,
-        clock=clock,
-    )
+    diag = diagnose_across(problems, ident, joint, rule=settings.rule, effects=effects, clock=clock)
     return diag, write_across(diag, out)
 
 

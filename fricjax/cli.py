@@ -687,14 +687,16 @@ def _diagnose_across(
     headline = diag.clock.headline()
     if headline:
         typer.echo(headline)  # before any verdict: the limit and what it left untested
-    if not diag.findings:
+    if not diag.findings and diag.clock.skipped:
+        typer.echo("nothing found among the candidates tested")
+    elif not diag.findings:
         typer.echo("nothing found across the recordings (no shared term, no drift)")
     for f in diag.findings:
-        typer.echo(
-            f"{f['name']} ({f['kind']}): {p_text(f['p_value'])}, dBIC = {f['delta_bic']:.1f}"
-        )
+        names = " or ".join(a.get("name") or a["effect"] for a in [f, *f.get("alternatives", [])])
+        typer.echo(f"{names}: {p_text(f['p_value'])}, dBIC = {f['delta_bic']:.1f}")
         typer.echo(f"  {f['explanation']}")
     typer.echo(f"report: {paths['report']}")
+    typer.echo(f"html: {paths['html']}")
 
 
 @app.command()

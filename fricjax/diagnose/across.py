@@ -1,24 +1,29 @@
 """Diagnosis across recordings of one plant, on their joint fit (:mod:`fricjax.joint`).
 
 ``K`` recordings (members) of one axis share the config's model; the config's
-``[joint].per_recording`` parameters take one value per recording. On the joint fit
-(:func:`fricjax.joint.identify_joint`, each member's residual over its noise scale
-``s_k``) two questions are asked:
+``[joint].per_recording`` parameters take one value per recording. The diagnosis is the
+forward selection of every diagnosis (:func:`fricjax.diagnose.select.select`) with the
+joint judge (:class:`JointJudge`) and one held-out check, leaving one recording out
+(:class:`LeaveOneOut`). Its candidates are of two kinds:
 
-1. **The catalogue across recordings.** Each applicable effect of
-   :data:`fricjax.diagnose.catalogue.CATALOGUE` is added to the joint model as a *shared*
-   term (one value of its parameters for all recordings) and fitted jointly
-   (Levenberg–Marquardt from the current fit, the term's amplitudes at their null and its
-   shape parameters at up to :data:`MAX_STARTS` points of its grid). Direction asymmetry
-   from strokes that each move one way only comes out here: no single stroke sees it,
-   the strokes together do.
-2. **Run-to-run drift.** Each free base parameter ``P`` that the config does not already
-   declare per recording is given one value per recording, ``P[1] … P[K]`` (the layout of
-   :func:`fricjax.joint.joint_problem`), and the hypothesis ``P[1] = … = P[K]`` tested.
+1. **A catalogue term shared by all recordings**: each applicable effect of
+   :data:`fricjax.diagnose.catalogue.CATALOGUE` added to the joint model with one value of
+   its parameters for all recordings, fitted jointly (Levenberg–Marquardt from the current
+   fit, the term's amplitudes at their null and its shape parameters at up to
+   :data:`MAX_STARTS` points of its grid). Direction asymmetry from strokes that each move
+   one way only comes out here: no single stroke sees it, the strokes together do.
+2. **Run-to-run drift** (``drift of P``): a free base parameter ``P`` that the config does
+   not already declare per recording given one value per recording, ``P[1] … P[K]`` (the
+   layout of :func:`fricjax.joint.joint_problem`), testing ``P[1] = … = P[K]``.
 
-The statistic and its variance. Both tests compare nested joint models: the larger one's
-extra directions are ``q`` linear contrasts ``Lθ`` (a term's amplitudes ``β``, null 0; or
-``P[k] − P[1]``, k = 2 … K). The test is Wald's,
+Both compete in one selection: a Coulomb level that moved in one run and a shared term
+that explains the same are rivals of one step, and where the recordings cannot tell them
+apart (two opposite one-way strokes: a direction asymmetry, or a Coulomb level that differs
+per stroke) the finding is the ambiguity set.
+
+The statistic and its variance. Each candidate's larger model adds ``q`` linear contrasts
+``Lθ`` (a term's amplitudes ``β``, null 0; or ``P[k] − P[1]``, k = 2 … K). The test is
+Wald's,
 
     W = (Lθ̂)ᵀ (L C Lᵀ)⁻¹ (Lθ̂),     C = A⁺ (JᵀΣJ) A⁺,   A = JᵀJ       [1]
 
@@ -31,51 +36,46 @@ likelihood ratio ``ΔE/s²`` has no χ² law; and ``s_k`` (each own fit's residu
 whatever the model misses, so a ratio in its units grows blind exactly where the model is
 wrong. The sandwich ``C`` is the covariance of the weighted least-squares estimate under
 the record's noise alone, whatever the weights: the weights ``1/s_k²`` set how efficiently
-the recordings are combined, never the test's size. It holds no white excess (unlike the σ
-that ``identify`` reports, :func:`fricjax.refine.uncertainty_at`): the excess is the misfit
-under test. Under the null (linearised) ``W ~ χ²_q``; σ̂_x² is itself estimated with ν
-degrees of freedom (:func:`fricjax.diagnose.evidence.effective_dof`), so
+the recordings are combined, never the test's size. Under the null (linearised)
+``W ~ χ²_q``; σ̂_x² is itself estimated with ν degrees of freedom
+(:func:`fricjax.diagnose.evidence.effective_dof`), so
 
     p = P[F(q, ν) > W/q],   ν = min_k ν_k                                  (2)
 
-(the smallest ν over the recordings: the most cautious reference). A contrast that the
-data do not determine (it has a component along a null direction of A, as the Coulomb
-level and an asymmetry on one stroke) is *not testable* and is reported so.
+(the smallest ν over the recordings: the most cautious reference); a term scanned from G
+shape starts counts G times (``p·G``, as a record's ``looks``). A contrast that the data do
+not determine (it has a component along a null direction of A, as the Coulomb level and an
+asymmetry on one stroke) is *not testable*: its p is NaN and it never passes.
 
-The bars. A term or a drift is named when (a) ``p < α/M`` (Bonferroni over the M
-candidates, or the M parameters tested for drift; a term with shape parameters scanned
-from G starts counts G times, ``p·G``), (b) the Bayesian information criterion with the
-noise variance known,
+The bars (:class:`~fricjax.diagnose.select.Rule`). ``p < α/C`` over the C candidates of
+the step, and
 
-    ΔBIC = W − (q + q_shape)·ln n,   n = Σ_k n_k                            (3)
+    ΔBIC = W − k·ln n,   n = Σ_k n_k                                       (3)
 
-exceeds ``min_delta_bic`` (W stands for the likelihood ratio it equals to first order;
-``q_shape`` the term's shape parameters), and, for a term, (c) **leave one recording out**:
-for each member k, the current model and the model with the term are fitted on the other
-K − 1 recordings, then each predicts recording k with its shared parameters fixed and k's
-own per-recording parameters refitted; the gain ``Σ_k (E_k^base − E_k^term)/s_k²`` over
-the folds must be positive. A fold whose K − 1 recordings leave a shared parameter
-undetermined (two opposite one-way strokes: one stroke cannot tell the Coulomb level from
-the asymmetry) cannot judge and says so; when no fold can, the term stands on (a) and (b)
-and the finding says that the held-out check was not possible.
+above ``min_delta_bic`` (W stands for the likelihood ratio it equals to first order; ``k``
+the parameters the candidate adds, its shape parameters included). The passing candidates
+are taken by the weighted joint cost they remove less ``k·ln n`` (that ranks the
+explanations by fit, while W says how sure each test is, and a wrong explanation can score
+the larger W).
 
-Order. Terms are selected first (forward, up to ``max_terms``: among those that pass,
-the one that lowers the weighted joint cost most, less ``ln n`` per parameter; that ranks
-the explanations by fit, while W says how sure each test is, and a wrong explanation can
-score the larger W). Drift is tested next, on the model with the selected terms, forward
-too: the parameter ranked first among those that pass is named and made per recording,
-and the others are tested again beside it (a Coulomb level that moved in one run would
-otherwise also show as a viscous level that moved, the shared Coulomb level being wrong
-for that run). On one-way strokes a shared asymmetry and a Coulomb level that differs per
-stroke give the same fit; the shared term is the smaller explanation (no new parameter
-per recording), and the finding notes the alternative.
+Leaving one recording out (:class:`LeaveOneOut`): for each member k, the current model and
+the model with the term are fitted on the other K − 1 recordings, then each predicts
+recording k with its shared parameters fixed and k's own per-recording parameters refitted;
+the term is named where the summed cost over the folds falls. A fold whose K − 1 recordings
+leave a shared parameter undetermined cannot judge and says so. Where no fold can (two
+opposite one-way strokes), or for a drift (its left-out value is refitted on the left-out
+recording, which always gains: no test), the candidate stands on its statistics
+(``standalone``) and the finding says that no held-out check was possible.
+
+Ambiguity (:meth:`JointJudge.vuong`): Vuong's test on the two fits' weighted residuals,
+summed over blocks of ``segment_s`` of each recording (the equation error's noise is
+coloured by the preprocessing filter over a few samples; blocks of 50 ms are far longer).
 
 Time. The stages and their clock are the single-record diagnosis'
-(:class:`~fricjax.diagnose.stages.Clock`): the joint fit (``base_fit``) always runs; every
-later stage (``candidates``, ``heldout``, ``drift``) runs under its own limit and the total
-one, checked between units of work (one candidate's fit, one fold, one parameter's drift
-fit): a stage that hits a limit stops there, and what it left out is reported; a candidate
-or parameter left untested is never named.
+(:class:`~fricjax.diagnose.stages.Clock`): the joint fit (``base_fit``) always runs; the
+candidates' fits and the held-out checks run under their limits and the total one,
+checked between units of work (one candidate's fit, one candidate's folds); a candidate
+left untested is never named.
 """
 
 from __future__ import annotations
@@ -85,8 +85,7 @@ import json
 import math
 import threading
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -95,11 +94,19 @@ from scipy import stats
 
 from fricjax.diagnose.catalogue import CATALOGUE, Candidate, candidate
 from fricjax.diagnose.evidence import effective_dof, record_noise
-from fricjax.diagnose.run import jsonable
+from fricjax.diagnose.select import (
+    Decision,
+    Gain,
+    Rule,
+    Step,
+    Verdict,
+    outcome,
+    refused_by_step,
+    select,
+)
 from fricjax.diagnose.stages import Clock, OnStage
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings
-from fricjax.io.atomic import make_folder, write_text_atomic
 from fricjax.joint import (
     JointProblem,
     JointSettings,
@@ -115,15 +122,20 @@ from fricjax.report.tables import p_text
 from fricjax.residual_noise import stacked_noise
 
 __all__ = [
+    "DRIFT",
     "MAX_STARTS",
     "STAGE_LIMITS",
     "TIME_LIMIT",
     "AcrossDiagnosis",
+    "JointCandidateFit",
     "JointFit",
+    "JointJudge",
+    "JointModel",
+    "LeaveOneOut",
+    "across_clock",
     "diagnose_across",
     "fit_joint",
     "wald",
-    "write_across",
 ]
 
 #: Shape-parameter starts per candidate (evenly spaced points of its grid, all recordings'
@@ -131,13 +143,15 @@ __all__ = [
 MAX_STARTS = 16
 #: Seconds per stage (and in all) by default: an ordinary diagnosis of a few 1–30 s
 #: recordings stays well inside them on two shared cores; a limit acts only when hit.
-STAGE_LIMITS: dict[str, float] = {"candidates": 300.0, "heldout": 300.0, "drift": 180.0}
+STAGE_LIMITS: dict[str, float] = {"candidates": 480.0, "heldout": 300.0}
 TIME_LIMIT = 900.0
 #: A contrast is determined when its component along A's null directions is below this
 #: fraction of its norm (in the column-scaled coordinates of the SVD).
 _NULL_TOL = 1e-6
 _SV_RCOND = 1e-10
-_OUTPUTS = ("diagnosis.json", "report.md")
+#: The effect name of a run-to-run drift finding (its parameter under ``parameter``).
+DRIFT = "run_drift"
+_DRIFT_PREFIX = "drift of "
 
 
 def across_clock(
@@ -171,6 +185,7 @@ class JointFit:
         null: [D, D − rank] A's null directions in the column-scaled coordinates.
         scale: [D] the column norms of J that scale them.
         member_cost: [K] each member's weighted cost ``‖r_k‖²/s_k²`` at ``theta``.
+        residual: [Σ n_k] the weighted joint residual at ``theta`` (members in order).
     """
 
     jp: JointProblem
@@ -180,6 +195,7 @@ class JointFit:
     null: np.ndarray
     scale: np.ndarray
     member_cost: np.ndarray
+    residual: np.ndarray
 
     def std(self) -> np.ndarray:
         """[D] σ of every joint parameter (∞ along an undetermined direction)."""
@@ -235,6 +251,7 @@ def fit_joint(
         null=vt[~keep].T,
         scale=scale,
         member_cost=member_cost,
+        residual=np.asarray(r),
     )
 
 
@@ -386,17 +403,272 @@ def _shared_values(fit: JointFit) -> dict[str, float]:
     return {n: v for n, v in _named(fit).items() if split_name(n)[1] is None}
 
 
+# -- the judge ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class JointModel:
+    """A joint model fitted: the config's model plus the ``active`` candidates (terms shared
+    by every member, drifts one value per member), ``fit`` its joint fit."""
+
+    fit: JointFit
+    active: tuple[str, ...] = ()
+
+    @property
+    def problems(self) -> list[Problem]:
+        """The members, each with the model's shared terms appended."""
+        return list(self.fit.jp.problems)
+
+    @property
+    def per(self) -> tuple[str, ...]:
+        """The parameters with one value per recording (the config's and the drifts')."""
+        return self.fit.jp.per_recording
+
+    @property
+    def cost(self) -> float:
+        return self.fit.cost
+
+
+@dataclass(frozen=True)
+class JointCandidateFit:
+    """One candidate fitted jointly beside ``base`` (module docstring).
+
+    Attributes:
+        name: the catalogue effect, or ``drift of P``.
+        effect: the catalogue effect, or :data:`DRIFT`.
+        base, fitted: the joint model before and with it.
+        test: the Wald test of its contrasts (eq. 1–2).
+        k: the parameters it adds (a term's shape parameters included; K − 1 for a drift).
+        looks: the shape starts it was fitted from (its p counts each).
+        params: its own parameters ``{name: (value, σ)}`` (a drift's ``P[k]``).
+    """
+
+    name: str
+    effect: str
+    base: JointModel
+    fitted: JointModel
+    test: Wald
+    k: int
+    looks: int
+    params: dict[str, tuple[float, float]]
+
+    @property
+    def parameter(self) -> str:
+        """The drifting parameter (``""`` for a term)."""
+        return self.name.removeprefix(_DRIFT_PREFIX) if self.effect == DRIFT else ""
+
+    @property
+    def n(self) -> int:
+        return self.fitted.fit.jp.n
+
+    @property
+    def p_value(self) -> float:
+        """Eq. 2, ``min(1, looks·p)``; NaN where the recordings do not determine it."""
+        return min(1.0, self.looks * self.test.p_value) if self.test.determined else math.nan
+
+    @property
+    def delta_bic(self) -> float:
+        """Eq. 3."""
+        return self.test.statistic - self.k * math.log(self.n)
+
+    @property
+    def rank(self) -> float:
+        """Weighted joint cost removed, less ``k·ln n`` (module docstring)."""
+        return self.base.cost - self.fitted.cost - self.k * math.log(self.n)
+
+    def passes(self, limit: float, min_delta_bic: float) -> bool:
+        return self.test.determined and self.p_value < limit and self.delta_bic > min_delta_bic
+
+
+@dataclass(frozen=True)
+class JointJudge:
+    """The judge across recordings for :func:`~fricjax.diagnose.select.select`: shared
+    catalogue terms and run-to-run drifts fitted jointly, tested by Wald's statistic in the
+    recordings' own noise (module docstring).
+
+    Attributes:
+        sigma: each member's weight scale ``s_k`` [N].
+        nu: the degrees of freedom of eq. 2.
+        effects: the catalogue entries tried.
+        drift: the base parameters whose drift is tried.
+        segment_s: block length of Vuong's test [s].
+        standalone: a candidate no fold can judge stands on its statistics (module
+            docstring: the asymmetry of opposite one-way strokes, every drift).
+    """
+
+    sigma: tuple[float, ...]
+    nu: int
+    effects: tuple[Candidate, ...]
+    drift: tuple[str, ...]
+    segment_s: float = 0.05
+    standalone: bool = True
+
+    def candidates(self, current: JointModel) -> list[str]:
+        terms = [
+            c.effect
+            for c in self.effects
+            if c.effect not in current.active and _extend(current.problems, c) is not None
+        ]
+        return terms + [_DRIFT_PREFIX + p for p in self.drift if p not in current.per]
+
+    def fit(
+        self, current: JointModel, names: Sequence[str], clock: Clock
+    ) -> list[JointCandidateFit]:
+        out = []
+        for name in names:
+            if clock.over("candidates"):
+                clock.untested("candidates", name)
+                continue
+            clock.note(f"{name}: joint fit")
+            if name.startswith(_DRIFT_PREFIX):
+                out.append(self._drift(current, name.removeprefix(_DRIFT_PREFIX)))
+            else:
+                fit = self._term(current, candidate(name))
+                if fit is not None:
+                    out.append(fit)
+        return out
+
+    def _term(self, current: JointModel, cand: Candidate) -> JointCandidateFit | None:
+        """``current`` + ``cand`` fitted jointly; the Wald test of its amplitudes."""
+        ext = _extend(current.problems, cand)
+        if ext is None:
+            return None
+        linear, shape = _added(current.problems, ext)
+        jp = joint_problem(ext, current.per, self.sigma)
+        base_vals = _named(current.fit)
+        starts = np.stack([_theta_for(jp, {**base_vals, **pt}) for pt in _shape_starts(ext, cand)])
+        tfit = fit_joint(ext, current.per, self.sigma, starts)
+        test = wald(tfit, _contrast(tfit.jp.names, [{n: 1.0} for n in linear]), self.nu)
+        sd = tfit.std()
+        params = {n: (tfit.value(n), float(sd[tfit.jp.names.index(n)])) for n in linear + shape}
+        fitted = JointModel(tfit, (*current.active, cand.effect))
+        k = len(linear) + len(shape)
+        return JointCandidateFit(
+            cand.effect, cand.effect, current, fitted, test, k, starts.shape[0], params
+        )
+
+    def _drift(self, current: JointModel, name: str) -> JointCandidateFit:
+        """``current`` with ``name`` one value per recording; the Wald test of
+        ``name[k] = name[1]``."""
+        members = current.problems
+        layout = (*current.per, name)
+        jp = joint_problem(members, layout, self.sigma)
+        dfit = fit_joint(members, layout, self.sigma, _theta_for(jp, _named(current.fit))[None])
+        names = list(dfit.jp.names)
+        cols = [member_name(name, k) for k in range(len(members))]
+        rows = [{cols[k]: 1.0, cols[0]: -1.0} for k in range(1, len(members))]
+        test = wald(dfit, _contrast(names, rows), self.nu)
+        sd = dfit.std()
+        params = {c: (dfit.value(c), float(sd[names.index(c)])) for c in cols}
+        label = _DRIFT_PREFIX + name
+        fitted = JointModel(dfit, (*current.active, label))
+        return JointCandidateFit(label, DRIFT, current, fitted, test, len(members) - 1, 1, params)
+
+    def confirm(self, fit: JointCandidateFit) -> JointCandidateFit:
+        return fit
+
+    def base(self, fit: JointCandidateFit) -> JointModel:
+        return fit.base
+
+    def model(self, fit: JointCandidateFit) -> JointModel:
+        return fit.fitted
+
+    def place(self, fit: JointCandidateFit) -> Mapping[str, Any]:
+        return location(fit)
+
+    def gains(self, fit: JointCandidateFit) -> tuple[Gain, ...]:
+        return ()
+
+    def vuong(self, best: JointCandidateFit, other: JointCandidateFit) -> tuple[float, int]:
+        """Vuong's t of ``best`` over ``other`` on the weighted joint residuals, summed per
+        block of :attr:`segment_s` of each recording (module docstring)."""
+        d = other.fitted.fit.residual**2 - best.fitted.fit.residual**2
+        sums = []
+        edges = np.cumsum([0] + [p.n_residual for p in best.fitted.problems])
+        for p, (a, b) in zip(best.fitted.problems, itertools.pairwise(edges), strict=True):
+            span = float(p.t[-1] - p.t[0]) if p.n > 1 else 0.0
+            blocks = max(1, min(b - a, round(span / self.segment_s)))
+            sums += [float(np.sum(c)) for c in np.array_split(d[a:b], blocks)]
+        per = np.asarray(sums)
+        S = per.size
+        sd = float(np.std(per, ddof=1)) if S > 1 else math.inf
+        t = (
+            float(np.mean(per) / (sd / math.sqrt(S)))
+            if sd > 0
+            else math.copysign(math.inf, float(np.sum(per)))
+        )
+        return t, max(S - 1, 1)
+
+
+def location(fit: JointCandidateFit) -> dict[str, Any]:
+    """Where a candidate acts: a term's place on the first recording
+    (:meth:`~fricjax.diagnose.catalogue.Candidate.location`), a drift's recordings."""
+    if fit.effect == DRIFT:
+        return {"recordings": [p.name for p in fit.fitted.problems]}
+    own = {n: v for n, (v, _) in fit.params.items()}
+    first = fit.fitted.problems[0]
+    return candidate(fit.effect).location({**first.spec.as_dict(), **own}, first)
+
+
+@dataclass
+class LeaveOneOut:
+    """Leave one recording out (module docstring): a :class:`~fricjax.diagnose.select.Check`
+    of :class:`JointModel` s, one part per fold. ``cache``: the current model's fold fits
+    (every candidate of a step is judged against the same one)."""
+
+    sigma: tuple[float, ...]
+    cache: dict[int, dict[int, tuple[JointFit, bool]]] = field(default_factory=dict)
+
+    def judge(self, before: JointModel, after: JointModel, place: Mapping[str, Any]) -> Verdict:
+        check = "leave one recording out"
+        names = [p.name for p in before.problems]
+        on = f"each of the {len(names)} recordings left out in turn"
+        if len(after.per) > len(before.per):
+            return Verdict(
+                check,
+                on,
+                False,
+                why="a drift is a value per recording; left out, a recording's own value is "
+                "refitted on it, which always gains",
+            )
+        per, sigma = before.per, self.sigma
+        folds = self.cache.setdefault(id(before.fit), {})
+        parts = []
+        for k in range(len(names)):
+            keep = [j for j in range(len(names)) if j != k]
+            if k not in folds:
+                folds[k] = _fold_fit(before.problems, per, sigma, keep, before.fit)
+            bfit, b_ok = folds[k]
+            efit, e_ok = _fold_fit(after.problems, per, sigma, keep, after.fit)
+            fold = f"{names[k]} left out"
+            if not (b_ok and e_ok):
+                why = "the other recordings do not determine every shared parameter"
+                parts.append(Verdict(check, fold, False, why=why))
+                continue
+            own = {n: before.fit.value(member_name(n, k)) for n in per}
+            e_base = _predict(before.problems[k], per, {**_shared_values(bfit), **own}, sigma[k])
+            e_term = _predict(after.problems[k], per, {**_shared_values(efit), **own}, sigma[k])
+            parts.append(Verdict(check, fold, True, 1 - e_term / e_base, e_base, e_term))
+        judged = [v for v in parts if v.judged]
+        if not judged:
+            why = "no recording can be left out with the term still determined by the others"
+            return Verdict(check, on, False, why=why, parts=tuple(parts))
+        cost_base = sum(v.cost_base for v in judged)
+        cost_term = sum(v.cost_term for v in judged)
+        gain = 1 - cost_term / cost_base
+        return Verdict(check, on, True, gain, cost_base, cost_term, parts=tuple(parts))
+
+
 # -- the diagnosis ------------------------------------------------------------------------
 @dataclass
 class AcrossDiagnosis:
-    """What :func:`diagnose_across` found: ``findings`` (terms then drifts, each with its
-    evidence), ``tested`` (every candidate and parameter with its statistics and verdict),
-    the base and final joint fits' summaries, and the time budget."""
+    """What :func:`diagnose_across` found: the selection's ``steps`` (typed), the
+    ``findings`` they make (diagnosis.json's layout, as for one recording), the recordings,
+    the base and final joint fits, the settings and the clock."""
 
     recordings: list[dict[str, Any]]
+    steps: list[Step[JointModel, JointCandidateFit]]
     findings: list[dict[str, Any]]
-    tested: list[dict[str, Any]]
-    fit: dict[str, Any]
+    base: JointModel
+    final: JointModel
     settings: dict[str, Any]
     clock: Clock
 
@@ -405,11 +677,236 @@ class AcrossDiagnosis:
             "kind": "diagnosis across recordings",
             "recordings": self.recordings,
             "findings": self.findings,
-            "tested": self.tested,
-            "fit": self.fit,
+            "fit": {"before": _fit_summary(self.base), "after": _fit_summary(self.final)},
+            "candidates": [
+                {
+                    "step": i + 1,
+                    "limit_p": st.limit,
+                    "min_delta_bic": st.min_delta_bic,
+                    "tested": [_candidate_json(f, outcome(st, f)) for f in st.fits],
+                }
+                for i, st in enumerate(self.steps)
+            ],
             "settings": self.settings,
+            "not_tested": self.clock.not_tested(),
             "timing": self.clock.summary(),
         }
+
+
+def diagnose_across(
+    problems: Sequence[Problem],
+    identify_settings: IdentifySettings,
+    joint: JointSettings,
+    *,
+    rule: Rule | None = None,
+    effects: Sequence[str] | None = None,
+    clock: Clock | None = None,
+) -> AcrossDiagnosis:
+    """The diagnosis across ``problems`` (module docstring): the joint fit, then forward
+    selection among shared catalogue terms and run-to-run drifts.
+
+    ``rule``: the levels (default :class:`~fricjax.diagnose.select.Rule`); ``effects``: the
+    catalogue entries to try (default: all); ``clock``: stages, progress and time limits
+    (default :func:`across_clock`)."""
+    if len(problems) < 2:
+        raise FricjaxError("diagnose: a diagnosis across recordings needs at least two")
+    rule = rule or Rule()
+    clock = clock or across_clock()
+    cands = tuple(candidate(e) for e in effects) if effects is not None else tuple(CATALOGUE)
+    evidence = [record_noise(p) for p in problems]
+    nu = min(effective_dof(e.noise) for e in evidence)
+    per = tuple(joint.per_recording)
+
+    with clock.stage("base_fit", "joint fit of the config's model"):
+        run = identify_joint(problems, identify_settings, joint)
+        sigma = tuple(float(m["sigma"]) for m in json.loads(str(run.attrs["members"])))
+        jp0 = joint_problem(problems, per, sigma)
+        theta0 = _theta_for(jp0, dict(zip(run.names, run.value, strict=True)))
+        base = JointModel(fit_joint(problems, per, sigma, theta0[None]))
+    drift = tuple(n for n in problems[0].spec.free_names if n not in per)
+    judge = JointJudge(sigma, nu, cands, drift)
+    steps = select(judge, [LeaveOneOut(sigma)], base, rule, clock)
+    named = [st.chosen for st in steps if st.chosen is not None]
+    final = named[-1].fit.fitted if named else base
+    findings = [_finding(d, nu, st.limit) for st in steps if (d := st.chosen) is not None]
+    findings += [_refused(best, rest) for best, rest in refused_by_step(steps)]
+    recordings = [
+        {
+            "name": p.name,
+            "source": p.source,
+            "sha256": p.checksum,
+            "n": p.n_residual,
+            "sigma_weight_N": s,
+            "sigma_x_m": e.sigma_x,
+            "nu": e.nu,
+            "direction": _direction(p),
+        }
+        for p, s, e in zip(problems, sigma, evidence, strict=True)
+    ]
+    settings = {
+        "alpha": rule.alpha,
+        "min_delta_bic": rule.min_delta_bic,
+        "max_terms": rule.max_terms,
+        "ambiguity": rule.ambiguity,
+        "nu": nu,
+        "per_recording": list(per),
+        "effects": [c.effect for c in cands],
+        "drift": list(drift),
+    }
+    return AcrossDiagnosis(recordings, steps, findings, base, final, settings, clock)
+
+
+def _fit_summary(m: JointModel) -> dict[str, Any]:
+    fit = m.fit
+    sd = fit.std()
+    return {
+        "cost": fit.cost,
+        "n": fit.jp.n,
+        "parameters": {n: _pm(v, s) for n, v, s in zip(fit.jp.names, fit.theta, sd, strict=True)},
+        "member_cost": [float(c) for c in fit.member_cost],
+    }
+
+
+def _candidate_json(f: JointCandidateFit, verdict: str) -> dict[str, Any]:
+    return {
+        "name": f.name,
+        "effect": f.effect,
+        **({"parameter": f.parameter} if f.parameter else {}),
+        "statistic": f.test.statistic,
+        "dof": f.test.dof,
+        "k": f.k,
+        "looks": f.looks,
+        "p_value": f.p_value,
+        "delta_bic": f.delta_bic,
+        "cost": {"before": f.base.cost, "after": f.fitted.cost},
+        "params": {n: _pm(v, s) for n, (v, s) in f.params.items()},
+        "verdict": verdict,
+    }
+
+
+def _finding(d: Decision[JointCandidateFit], nu: int, level: float) -> dict[str, Any]:
+    """One named finding of diagnosis.json (the layout of one recording's, plus ``name``,
+    ``sigma`` and, for a drift, ``parameter``, ``values`` and ``moved``: the recordings
+    whose value moved, at the step's ``level``)."""
+    f, verdicts, alternatives = d.fit, d.verdicts, d.alternatives
+    out: dict[str, Any] = {
+        "effect": f.effect,
+        "name": f.name,
+        "explanation": "",
+        "location": location(f),
+        "params": {n: v for n, (v, _) in f.params.items()},
+        "sigma": {n: s for n, (_, s) in f.params.items()},
+        "delta_bic": f.delta_bic,
+        "p_value": f.p_value,
+        "statistic": f.test.statistic,
+        "dof": f.test.dof,
+        "test": "Wald, joint equation error in the recordings' own noise",
+        "heldout": [v.as_json() for v in verdicts],
+        "alternatives": [
+            {
+                "effect": a.fit.effect,
+                "name": a.fit.name,
+                "params": {n: v for n, (v, _) in a.fit.params.items()},
+                "location": location(a.fit),
+                "delta_bic": a.fit.delta_bic,
+                "p_value": a.fit.p_value,
+                "vuong_t": a.t,
+                "vuong_p": a.p_value,
+            }
+            for a in alternatives
+        ],
+    }
+    if f.effect == DRIFT:
+        members = f.fitted.problems
+        cols = list(f.params)
+        out["parameter"] = f.parameter
+        out["values"] = [
+            {"recording": p.name, **_pm(*f.params[c])} for p, c in zip(members, cols, strict=True)
+        ]
+        # of two recordings, neither is the odd one out
+        moved = _moved(f.fitted.fit, cols, nu, level) if len(members) > 2 else []
+        out["moved"] = [members[k].name for k in moved]
+    out["explanation"] = _explain(f, out, verdicts, alternatives)
+    return out
+
+
+def _explain(
+    f: JointCandidateFit,
+    finding: Mapping[str, Any],
+    verdicts: Sequence[Verdict],
+    alternatives: Sequence[Any],
+) -> str:
+    """The finding in words: what, the test, the held-out check, the rivals."""
+    if f.effect == DRIFT:
+        unit = f.base.problems[0].spec[f.parameter].unit
+        parts = ", ".join(
+            f"{v['value']:.4g} ± {v['sigma']:.2g}" if v["sigma"] else f"{v['value']:.4g}"
+            for v in finding["values"]
+        )
+        text = (
+            f"{f.parameter} differs between the recordings beyond its σ: {parts} {unit} "
+            f"(W = {f.test.statistic:.1f} on {f.test.dof} degrees of freedom, "
+            f"{p_text(f.p_value)})"
+            + (
+                f"; it moved in {', '.join(finding['moved'])}."
+                if finding["moved"]
+                else "; which recording moved, these cannot tell."
+            )
+        )
+    else:
+        first = f.fitted.problems[0]
+        text = candidate(f.effect).explain({**first.spec.as_dict(), **finding["params"]}, first)
+        held = next((v for v in verdicts if v.judged), None)
+        if held is not None:
+            text += (
+                f" Leaving one recording out, it predicts the left-out ones better: their "
+                f"cost falls from {held.cost_base:.4g} to {held.cost_term:.4g} (in units of "
+                "each recording's weight)."
+            )
+        else:
+            text += (
+                " No recording can be left out with the term still determined by the others, "
+                "so it rests on its p-value and ΔBIC across all of them."
+            )
+    if alternatives:
+        names = ", ".join(a.fit.name for a in alternatives)
+        text += (
+            f" These recordings cannot tell it from {names}: each explains them about as "
+            "well (Vuong's test not significant)."
+        )
+        dirs = {_direction(p) for p in f.fitted.problems}
+        if dirs == {"forward", "backward"}:
+            text += (
+                " Each recording moves one way only: a stroke that moves both ways would "
+                "tell a direction asymmetry from a level that changed between runs."
+            )
+    return text
+
+
+def _refused(best: Any, rivals: Sequence[Any]) -> dict[str, Any]:
+    """``unexplained`` where candidates passed the statistics but not the held-out check:
+    the recordings hold something that these candidates do not explain in a way that
+    carries over to a recording their fit has not seen."""
+    f = best.fit
+    held = next(v for v in best.verdicts if v.judged)
+    others = [r.fit.name for r in rivals]
+    return {
+        "effect": "unexplained",
+        "explanation": (
+            f"The recordings hold structure that {f.name} lowers BIC by {f.delta_bic:.1f} on, "
+            f"but leaving one recording out it predicts worse ({100 * held.gain:+.1f} %): it "
+            "is not claimed." + (f" Refused as well: {', '.join(others)}." if others else "")
+        ),
+        "location": location(f),
+        "params": {},
+        "delta_bic": f.delta_bic,
+        "p_value": f.p_value,
+        "rejected_candidate": {"effect": f.effect, "name": f.name, "heldout": held.as_json()},
+        "rejected_alternatives": [
+            {"name": r.fit.name, "delta_bic": r.fit.delta_bic, "p_value": r.fit.p_value}
+            for r in rivals
+        ],
+    }
 
 
 def _pm(value: float, sd: float) -> dict[str, float | None]:
@@ -424,344 +921,6 @@ def _direction(problem: Problem) -> str:
     if share < 0.05:
         return "backward"
     return "both"
-
-
-def _judge_term(
-    cand: Candidate,
-    current: list[Problem],
-    fit: JointFit,
-    per_recording: Sequence[str],
-    sigma: Sequence[float],
-    nu: int,
-    n_tests: int,
-    alpha: float,
-    bar: float,
-) -> tuple[dict[str, Any], list[Problem] | None, JointFit | None]:
-    """Fit ``current`` + ``cand`` jointly and test its amplitudes (module docstring)."""
-    ext = _extend(current, cand)
-    record: dict[str, Any] = {"kind": "term", "name": cand.effect}
-    if ext is None:
-        return {**record, "verdict": "not applicable"}, None, None
-    linear, shape = _added(current, ext)
-    jp = joint_problem(ext, per_recording, sigma)
-    base_vals = _named(fit)
-    starts = np.stack([_theta_for(jp, {**base_vals, **pt}) for pt in _shape_starts(ext, cand)])
-    tfit = fit_joint(ext, per_recording, sigma, starts)
-    test = wald(tfit, _contrast(tfit.jp.names, [{n: 1.0} for n in linear]), nu)
-    n = tfit.jp.n
-    g = starts.shape[0]
-    p_adj = min(1.0, test.p_value * g) if test.determined else math.nan
-    dbic = test.statistic - (len(linear) + len(shape)) * math.log(n)
-    sd = tfit.std()
-    record.update(
-        {
-            "parameters": {
-                name: _pm(tfit.value(name), sd[tfit.jp.names.index(name)])
-                for name in linear + shape
-            },
-            "statistic": test.statistic,
-            "dof": test.dof,
-            "shape_starts": g,
-            "p_value": p_adj,
-            "p_threshold": alpha / n_tests,
-            "delta_bic": dbic,
-            "cost": {"before": fit.cost, "after": tfit.cost},
-            "rank": fit.cost - tfit.cost - (len(linear) + len(shape)) * math.log(n),
-        }
-    )
-    if not test.determined:
-        record["verdict"] = "not determined by these recordings"
-    elif not (p_adj < alpha / n_tests):
-        record["verdict"] = "not significant"
-    elif not dbic > bar:
-        record["verdict"] = "below the ΔBIC bar"
-    else:
-        record["verdict"] = "passes p and ΔBIC"
-    return record, ext, tfit
-
-
-def _heldout(
-    current: list[Problem],
-    ext: list[Problem],
-    fit: JointFit,
-    tfit: JointFit,
-    per_recording: Sequence[str],
-    sigma: Sequence[float],
-    cache: dict[int, tuple[JointFit, bool]],
-    clock: Clock,
-    effect: str,
-) -> dict[str, Any] | None:
-    """Leave-one-recording-out gain of the term (module docstring); None when the time
-    limit cut it (the candidate is then not named)."""
-    folds: list[dict[str, Any]] = []
-    total, judged = 0.0, 0
-    names = [p.name for p in current]
-    for k in range(len(current)):
-        if clock.over("heldout"):
-            clock.skip("heldout", f"{effect}: leaving out {names[k]} (time limit)", effect)
-            return None
-        keep = [j for j in range(len(current)) if j != k]
-        if k not in cache:
-            cache[k] = _fold_fit(current, per_recording, sigma, keep, fit)
-        bfit, b_ok = cache[k]
-        efit, e_ok = _fold_fit(ext, per_recording, sigma, keep, tfit)
-        if not (b_ok and e_ok):
-            folds.append(
-                {
-                    "left_out": names[k],
-                    "gain": None,
-                    "why": "the other recordings do not determine every shared parameter",
-                }
-            )
-            continue
-        own = {n: fit.value(member_name(n, k)) for n in per_recording}
-        e_base = _predict(current[k], per_recording, {**_shared_values(bfit), **own}, sigma[k])
-        e_term = _predict(ext[k], per_recording, {**_shared_values(efit), **own}, sigma[k])
-        folds.append({"left_out": names[k], "gain": e_base - e_term, "why": ""})
-        total += e_base - e_term
-        judged += 1
-    return {"folds": folds, "gain": total if judged else None, "judged": judged}
-
-
-def diagnose_across(
-    problems: Sequence[Problem],
-    identify_settings: IdentifySettings,
-    joint: JointSettings,
-    *,
-    alpha: float = 0.01,
-    min_delta_bic: float = 10.0,
-    max_terms: int = 3,
-    effects: Sequence[str] | None = None,
-    clock: Clock | None = None,
-) -> AcrossDiagnosis:
-    """The diagnosis across ``problems`` (module docstring): joint fit, catalogue terms
-    (shared, leave-one-recording-out), then drift of every base parameter that is shared.
-
-    ``effects``: the catalogue entries to try (default: all); ``clock``: stages, progress
-    and time limits (default :func:`across_clock`)."""
-    if len(problems) < 2:
-        raise FricjaxError("diagnose: a diagnosis across recordings needs at least two")
-    clock = clock or across_clock()
-    cands = [candidate(e) for e in effects] if effects is not None else list(CATALOGUE)
-    evidence = [record_noise(p) for p in problems]
-    nu = min(effective_dof(e.noise) for e in evidence)
-    per = tuple(joint.per_recording)
-
-    with clock.stage("base_fit", "joint fit of the config's model"):
-        run = identify_joint(problems, identify_settings, joint)
-        sigma = [float(m["sigma"]) for m in json.loads(str(run.attrs["members"]))]
-        current = list(problems)
-        jp0 = joint_problem(current, per, sigma)
-        theta0 = _theta_for(jp0, dict(zip(run.names, run.value, strict=True)))
-        fit = fit_joint(current, per, sigma, theta0[None])
-    base_fit = fit
-    bar = float(min_delta_bic)
-
-    # catalogue: forward selection of shared terms ------------------------------------
-    tested: list[dict[str, Any]] = []
-    findings: list[dict[str, Any]] = []
-    pool = [c for c in cands if _extend(current, c) is not None]
-    n_tests = max(len(pool), 1)
-    for c in cands:
-        if c not in pool:
-            tested.append({"kind": "term", "name": c.effect, "verdict": "not applicable"})
-    fold_cache: dict[int, tuple[JointFit, bool]] = {}
-    for _ in range(max_terms):
-        if not pool:
-            break
-        round_records = []
-        with clock.stage("candidates", "joint fits of the model with each catalogue term"):
-            for c in pool:
-                if clock.over("candidates"):
-                    clock.untested("candidates", c.effect)
-                    untested = {
-                        "kind": "term",
-                        "name": c.effect,
-                        "verdict": "not tested (time limit)",
-                    }
-                    round_records.append((untested, None, None, c))
-                    continue
-                clock.note(f"{c.effect} added to the joint model")
-                rec, ext, tfit = _judge_term(c, current, fit, per, sigma, nu, n_tests, alpha, bar)
-                round_records.append((rec, ext, tfit, c))
-        passing = sorted(
-            (r for r in round_records if r[0]["verdict"] == "passes p and ΔBIC"),
-            key=lambda r: -r[0]["rank"],
-        )
-        chosen = None
-        with clock.stage("heldout", "leave-one-recording-out fits and predictions"):
-            for rec, ext, tfit, c in passing:
-                clock.note(f"{c.effect}: leaving one recording out")
-                held = _heldout(current, ext, fit, tfit, per, sigma, fold_cache, clock, c.effect)
-                rec["heldout"] = held
-                if held is None:
-                    rec["verdict"] = "held-out check cut by the time limit"
-                    continue
-                if held["judged"] and not held["gain"] > 0:
-                    rec["verdict"] = "no held-out gain"
-                    continue
-                rec["verdict"] = "named"
-                chosen = (rec, ext, tfit, c)
-                break
-        if chosen is None:
-            tested.extend(r[0] for r in round_records)
-            break
-        rec, ext, tfit, c = chosen
-        for other in round_records:
-            if other[0]["verdict"] == "passes p and ΔBIC":
-                other[0]["verdict"] = (
-                    f"passes; {name_of(rec)} explains more (tested again beside it)"
-                )
-        rec["explanation"] = _explain_term(c, rec, ext, tfit)
-        findings.append(rec)
-        tested.extend(r[0] for r in round_records if r[3] is not c)
-        tested.append(rec)
-        pool = [q for q in pool if q is not c and _extend(ext, q) is not None]
-        current, fit, fold_cache = ext, tfit, {}
-
-    # drift: one value per recording of a shared base parameter, forward as the terms ----
-    with clock.stage("drift", "joint fits with one parameter per recording"):
-        drift_names = [n for n in problems[0].spec.free_names if n not in per]
-        remaining, layout = list(drift_names), per
-        while remaining:
-            records = []
-            for name in remaining:
-                if clock.over("drift"):
-                    clock.skip("drift", f"drift of {name}: not tested (time limit)")
-                    records.append(
-                        (
-                            {"kind": "drift", "name": name, "verdict": "not tested (time limit)"},
-                            None,
-                        )
-                    )
-                    continue
-                clock.note(f"{name} one value per recording")
-                records.append(
-                    _drift(name, current, fit, layout, sigma, nu, len(drift_names), alpha, bar)
-                )
-            named = [r for r in records if r[0]["verdict"] == "named"]
-            if not named:
-                tested.extend(r[0] for r in records)
-                break
-            rec, dfit = max(named, key=lambda r: r[0]["rank"])
-            for other, _ in named:
-                if other is not rec:
-                    other["verdict"] = (
-                        f"passes; {name_of(rec)} explains more (tested again beside it)"
-                    )
-            tested.extend(r[0] for r in records if r[0] is not rec)
-            tested.append(rec)
-            findings.append(rec)
-            remaining.remove(rec["name"])
-            layout, fit = (*layout, rec["name"]), dfit
-
-    recordings = [
-        {
-            "name": p.name,
-            "source": p.source,
-            "sha256": p.checksum,
-            "n": p.n_residual,
-            "sigma_weight_N": s,
-            "sigma_x_m": e.sigma_x,
-            "nu": e.nu,
-            "direction": _direction(p),
-        }
-        for p, s, e in zip(problems, sigma, evidence, strict=True)
-    ]
-    summary = {
-        "before": _fit_summary(base_fit),
-        "after": _fit_summary(fit),
-        "terms": [f["name"] for f in findings if f["kind"] == "term"],
-    }
-    settings = {
-        "alpha": alpha,
-        "min_delta_bic": bar,
-        "max_terms": max_terms,
-        "nu": nu,
-        "per_recording": list(per),
-        "effects": [c.effect for c in cands],
-    }
-    return AcrossDiagnosis(recordings, findings, tested, summary, settings, clock)
-
-
-def name_of(record: Mapping[str, Any]) -> str:
-    """How a finding is named: ``asymmetric_friction``, ``drift of Fc``."""
-    return record["name"] if record["kind"] == "term" else f"drift of {record['name']}"
-
-
-def _fit_summary(fit: JointFit) -> dict[str, Any]:
-    sd = fit.std()
-    return {
-        "cost": fit.cost,
-        "n": fit.jp.n,
-        "parameters": {n: _pm(v, s) for n, v, s in zip(fit.jp.names, fit.theta, sd, strict=True)},
-        "member_cost": [float(c) for c in fit.member_cost],
-    }
-
-
-def _drift(
-    name: str,
-    current: list[Problem],
-    fit: JointFit,
-    per: Sequence[str],
-    sigma: Sequence[float],
-    nu: int,
-    n_tests: int,
-    alpha: float,
-    bar: float,
-) -> tuple[dict[str, Any], JointFit]:
-    """Joint fit with ``name`` per recording (beside the ``per`` ones); the Wald test of
-    ``name[k] = name[1]`` and the recordings where it moved (module docstring)."""
-    k_count = len(current)
-    layout = (*per, name)
-    jp = joint_problem(current, layout, sigma)
-    dfit = fit_joint(current, layout, sigma, _theta_for(jp, _named(fit))[None])
-    names = list(dfit.jp.names)
-    cols = [member_name(name, k) for k in range(k_count)]
-    rows = [{cols[k]: 1.0, cols[0]: -1.0} for k in range(1, k_count)]
-    test = wald(dfit, _contrast(names, rows), nu)
-    sd = dfit.std()
-    values = [
-        {
-            "recording": p.name,
-            **_pm(dfit.value(c), sd[names.index(c)]),
-        }
-        for p, c in zip(current, cols, strict=True)
-    ]
-    dbic = test.statistic - (k_count - 1) * math.log(dfit.jp.n)
-    record: dict[str, Any] = {
-        "kind": "drift",
-        "name": name,
-        "values": values,
-        "statistic": test.statistic,
-        "dof": test.dof,
-        "p_value": test.p_value,
-        "p_threshold": alpha / n_tests,
-        "delta_bic": dbic,
-        "cost": {"before": fit.cost, "after": dfit.cost},
-        "rank": fit.cost - dfit.cost - (k_count - 1) * math.log(dfit.jp.n),
-    }
-    if not test.determined:
-        record["verdict"] = "not determined by these recordings"
-    elif not test.p_value < alpha / n_tests:
-        record["verdict"] = "not significant"
-    elif not dbic > bar:
-        record["verdict"] = "below the ΔBIC bar"
-    else:
-        record["verdict"] = "named"
-        moved = _moved(dfit, cols, nu, alpha / n_tests)
-        record["moved"] = [current[k].name for k in moved]
-        unit = current[0].spec[name].unit
-        parts = ", ".join(
-            f"{v['value']:.4g} ± {v['sigma']:.2g}" if v["sigma"] else f"{v['value']:.4g}"
-            for v in values
-        )
-        record["explanation"] = (
-            f"{name} differs between the recordings beyond its σ: {parts} {unit} "
-            f"(W = {test.statistic:.1f} on {test.dof} degrees of freedom, p = "
-            f"{test.p_value:.2g}); it moved in {', '.join(record['moved'])}."
-        )
-    return record, dfit
 
 
 def _moved(fit: JointFit, cols: Sequence[str], nu: int, level: float) -> list[int]:
@@ -787,81 +946,3 @@ def _moved(fit: JointFit, cols: Sequence[str], nu: int, level: float) -> list[in
         worst = max(range(len(rest)), key=lambda i: (round(z[i], 9), i))
         moved.append(rest.pop(worst))
     return sorted(moved)
-
-
-def _explain_term(cand: Candidate, rec: dict[str, Any], ext: list[Problem], tfit: JointFit) -> str:
-    params = {**{p.name: p.init for p in ext[0].spec.params}, **_named(tfit)}
-    text = cand.explain({k: v for k, v in params.items() if split_name(k)[1] is None}, ext[0])
-    held = rec.get("heldout") or {}
-    if held.get("judged"):
-        text += (
-            f" Leaving one recording out, it predicts the left-out ones better by "
-            f"{held['gain']:.3g} (in units of each recording's noise)."
-        )
-    else:
-        text += (
-            " No recording can be left out with the term still determined by the others, "
-            "so it rests on its p-value and ΔBIC across all of them."
-        )
-    dirs = {_direction(p) for p in ext}
-    if cand.effect == "asymmetric_friction" and dirs == {"forward", "backward"}:
-        text += (
-            " Each recording moves one way only: a Coulomb level that differed between the "
-            "runs would fit the same; a repeated stroke in one direction tells them apart."
-        )
-    return text
-
-
-# -- output -------------------------------------------------------------------------------
-def report_markdown(diag: AcrossDiagnosis) -> str:
-    """report.md: the recordings, the findings with their evidence, every test, time."""
-    d = diag.to_json()
-    lines = ["# Diagnosis across recordings", ""]
-    lines += [
-        "| # | recording | direction | σ_x [m] | ν | s_k [N] |",
-        "| --- | --- | --- | --- | --- | --- |",
-    ]
-    for k, r in enumerate(d["recordings"], 1):
-        lines.append(
-            f"| {k} | {r['name']} | {r['direction']} | {r['sigma_x_m']:.3g} | {r['nu']} | "
-            f"{r['sigma_weight_N']:.4g} |"
-        )
-    lines += ["", "## Findings", ""]
-    if not d["findings"]:
-        lines.append("Nothing found: no catalogue term and no drift passes the bars.")
-    for f in d["findings"]:
-        lines.append(f"- **{f['name']}** ({f['kind']}): {f['explanation']}")
-        lines.append(
-            f"  W = {f['statistic']:.2f} ({f['dof']} dof), {p_text(f['p_value'])} "
-            f"(bar {f['p_threshold']:.3g}), ΔBIC = {f['delta_bic']:.1f}"
-        )
-        for fold in (f.get("heldout") or {}).get("folds", []):
-            gain = "not judged: " + fold["why"] if fold["gain"] is None else f"{fold['gain']:.3g}"
-            lines.append(f"  - left out {fold['left_out']}: gain {gain}")
-    lines += ["", "## Every test", "", "| kind | name | W | p | ΔBIC | verdict |"]
-    lines.append("| --- | --- | --- | --- | --- | --- |")
-    for t in d["tested"]:
-        w, p, b = t.get("statistic"), t.get("p_value"), t.get("delta_bic")
-        cell = [
-            f"{w:.2f}" if isinstance(w, float) and math.isfinite(w) else "",
-            f"{p:.3g}" if isinstance(p, float) and math.isfinite(p) else "",
-            f"{b:.1f}" if isinstance(b, float) and math.isfinite(b) else "",
-        ]
-        lines.append(f"| {t['kind']} | {t['name']} | {' | '.join(cell)} | {t['verdict']} |")
-    timing = d["timing"]
-    lines += ["", "## Time", "", f"{timing['total_s']:.1f} s in all."]
-    for stage, s in timing["stages_s"].items():
-        lines.append(f"- {stage}: {s:.1f} s")
-    for item in timing["skipped"]:
-        lines.append(f"- time limit ({item['limit']}) at {item['stage']}: {item['what']}")
-    return "\n".join(lines) + "\n"
-
-
-def write_across(diag: AcrossDiagnosis, out: str | Path) -> dict[str, Path]:
-    """Write DIR/diagnosis.json and DIR/report.md (atomic)."""
-    folder = make_folder(out)
-    text = json.dumps(jsonable(diag.to_json()), indent=2, ensure_ascii=False)
-    return {
-        "json": write_text_atomic(folder / _OUTPUTS[0], text + "\n"),
-        "report": write_text_atomic(folder / _OUTPUTS[1], report_markdown(diag)),
-    }

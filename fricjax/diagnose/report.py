@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Any
 import h5py
 import numpy as np
 
+from fricjax.diagnose.run import jsonable
+from fricjax.diagnose.select import outcome
 from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.params import on_bound
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
@@ -25,9 +27,11 @@ from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt, p_text
 
 if TYPE_CHECKING:
+    from fricjax.diagnose.across import AcrossDiagnosis
     from fricjax.diagnose.judge import CandidateFit, Fitted
     from fricjax.diagnose.run import Diagnosis
     from fricjax.diagnose.select import Step
+    from fricjax.diagnose.stages import Clock
 
 _PLACES = {
     "time_s": ("t", "s"),
@@ -50,6 +54,13 @@ def length(x: float) -> str:
     if a >= 1e-3:
         return f"{1e3 * x:.3g} mm"
     return f"{1e6 * x:.3g} µm"
+
+
+#: The verdict of a diagnosis of one record that finds nothing.
+NOTHING = (
+    "**Nothing is missing**: no catalogue term passes the judge and the model fits the "
+    "record to its noise."
+)
 
 
 def _pct(gain: float) -> str:
@@ -121,31 +132,32 @@ def residual_figure(diag: Diagnosis, path: Path) -> Path:
     return save(fig, path)
 
 
-def _verdict(diag: Diagnosis) -> str:
-    cut = diag.clock.headline()
-    verdict = _findings_verdict(diag)
-    return f"**{cut}** {verdict}" if cut else verdict
+def verdict(findings: list[dict[str, Any]], clock: Clock, nothing: str) -> str:
+    """The report's first sentence: the time limit (if hit), then the findings, an
+    ambiguity set as ``a`` or ``b``; ``nothing``: what an empty diagnosis means."""
+    cut = clock.headline()
+    text = _findings_verdict(findings, clock, nothing)
+    return f"**{cut}** {text}" if cut else text
 
 
-def _findings_verdict(diag: Diagnosis) -> str:
-    named = [f["effect"] for f in diag.findings if f["effect"] != "unexplained"]
-    unexplained = sum(f["effect"] == "unexplained" for f in diag.findings)
-    if not diag.findings and diag.clock.skipped:
+def _label(f: Mapping[str, Any]) -> str:
+    """How a finding or alternative is named: its ``name`` (``drift of Fc``), else its
+    effect."""
+    return str(f.get("name") or f["effect"])
+
+
+def _findings_verdict(findings: list[dict[str, Any]], clock: Clock, nothing: str) -> str:
+    named = [f for f in findings if f["effect"] != "unexplained"]
+    unexplained = len(findings) - len(named)
+    if not findings and clock.skipped:
         # a diagnosis cut short cannot say that nothing is missing
         return "**Nothing found among the candidates tested** (see Time)."
-    if not diag.findings:
-        return (
-            "**Nothing is missing**: no catalogue term passes the judge and the model fits the "
-            "record to its noise."
-        )
+    if not findings:
+        return nothing
     parts = []
     if named:
         shown = [
-            " or ".join(
-                f"`{e}`" for e in [f["effect"], *(a["effect"] for a in f.get("alternatives", []))]
-            )
-            for f in diag.findings
-            if f["effect"] != "unexplained"
+            " or ".join(f"`{_label(e)}`" for e in [f, *f.get("alternatives", [])]) for f in named
         ]
         parts.append(f"**{len(named)} finding(s)**: " + ", ".join(shown))
     if unexplained:
@@ -233,17 +245,7 @@ def finding_blocks(diag: Diagnosis) -> list[Block]:
 
 def _candidate_row(st: Step[Fitted, CandidateFit], f: CandidateFit) -> tuple[str, ...]:
     """One candidate's row: its refit's statistic and what the rule made of it."""
-    decided = {d.fit.effect: d for d in st.decisions}
-    chosen = st.chosen
-    if f.effect in decided:
-        d = decided[f.effect]
-        decision = "named" if d.named else "refused (cross-validation)"
-    elif chosen is not None and f.effect in {a.fit.effect for a in chosen.alternatives}:
-        decision = f"cannot be told from {chosen.fit.effect}"
-    elif f.passes(st.limit, st.min_delta_bic):
-        decision = "passes"
-    else:
-        decision = ""
+    decision = outcome(st, f)
     return (
         f.effect,
         str(f.k),
@@ -270,11 +272,11 @@ def candidate_blocks(diag: Diagnosis) -> list[Block]:
     return [Heading("Candidates"), *blocks] if blocks else []
 
 
-def timing_blocks(diag: Diagnosis) -> list[Block]:
+def timing_blocks(clock: Clock) -> list[Block]:
     """Wall time per stage, the limits, and what a limit left out, each by name."""
     from fricjax.diagnose.stages import STAGES
 
-    t = diag.clock.summary()
+    t = clock.summary()
     limits = t["limits_s"]
     rows = tuple(
         (k, f"{t['stages_s'][k]:.1f}", fmt(limits.get(k), 4) if k in limits else "–")
@@ -298,13 +300,16 @@ def timing_blocks(diag: Diagnosis) -> list[Block]:
 def report_blocks(diag: Diagnosis, figure: Path) -> list[Block]:
     return [
         Heading(f"Diagnosis of `{diag.recording}`", 1),
-        Para(f"Base model: `{diag.base_model}`. Verdict: {_verdict(diag)}"),
+        Para(
+            f"Base model: `{diag.base_model}`. "
+            f"Verdict: {verdict(diag.findings, diag.clock, NOTHING)}"
+        ),
         *finding_blocks(diag),
         *data_blocks(diag),
         *fit_blocks(diag),
         Image(figure, "Output-error residual of the base and final models; orange: findings."),
         *candidate_blocks(diag),
-        *timing_blocks(diag),
+        *timing_blocks(diag.clock),
     ]
 
 
@@ -319,6 +324,139 @@ def write_reports(diag: Diagnosis, out: Path) -> dict[str, Path]:
             out / "report.html", to_html(blocks, f"Diagnosis of {Path(diag.recording).name}")
         ),
     }
+
+
+# -- several recordings ---------------------------------------------------------------------
+
+#: The verdict of a diagnosis across recordings that finds nothing.
+NOTHING_ACROSS = "**Nothing found**: no shared catalogue term and no drift passes the judge."
+
+
+def _pm_text(value: Mapping[str, Any]) -> str:
+    sd = value.get("sigma")
+    return f"{fmt(value['value'], 4)} ± {fmt(sd, 2)}" if sd else fmt(value["value"], 4)
+
+
+def across_blocks(diag: AcrossDiagnosis) -> list[Block]:
+    """The report across recordings: the verdict, each finding with its evidence, the
+    recordings, every candidate of every step, the fit and the time."""
+    d = diag.to_json()
+    blocks: list[Block] = [
+        Heading(f"Diagnosis across {len(d['recordings'])} recordings", 1),
+        Para(f"Verdict: {verdict(diag.findings, diag.clock, NOTHING_ACROSS)}"),
+    ]
+    for i, f in enumerate(diag.findings, 1):
+        blocks += [Heading(f"Finding {i}: `{_label(f)}`", 3), Para(f["explanation"])]
+        blocks.append(Para(f"Where: {where_text(f.get('location', {}))}."))
+        if f.get("params"):
+            shown = ", ".join(
+                _pm_text({"value": v, "sigma": f.get("sigma", {}).get(n)}) + f" ({n})"
+                for n, v in f["params"].items()
+            )
+            blocks.append(Para(f"Parameters: {shown}."))
+        if f["effect"] == "unexplained":
+            continue
+        blocks.append(
+            Para(
+                f"W = {f['statistic']:.2f} ({f['dof']} dof), {p_text(f['p_value'])}, ΔBIC "
+                f"{f['delta_bic']:.1f}."
+            )
+        )
+        for v in f["heldout"]:
+            parts = v.get("parts") or [v]
+            blocks.append(
+                Items(
+                    tuple(
+                        f"{q['on']}: cost {fmt(q['cost_base'], 4)} → {fmt(q['cost_term'], 4)}"
+                        if q["judged"]
+                        else f"{q['on']}: not judged ({q.get('why', '')})"
+                        for q in parts
+                    )
+                )
+            )
+        for a in f.get("alternatives", []):
+            blocks.append(
+                Para(
+                    f"Or `{_label(a)}` ({where_text(a['location'])}): ΔBIC "
+                    f"{a['delta_bic']:.1f}; the recordings do not prefer `{_label(f)}` over it "
+                    f"(Vuong t = {a['vuong_t']:.2f}, {p_text(a['vuong_p'])})."
+                )
+            )
+    blocks += [
+        Heading("The recordings"),
+        Table(
+            ("#", "recording", "direction", "σ_x", "ν", "weight scale s_k [N]"),
+            tuple(
+                (
+                    str(k),
+                    r["name"],
+                    r["direction"],
+                    length(r["sigma_x_m"]),
+                    str(r["nu"]),
+                    fmt(r["sigma_weight_N"], 4),
+                )
+                for k, r in enumerate(d["recordings"], 1)
+            ),
+        ),
+        Heading("Candidates"),
+    ]
+    for st in d["candidates"]:
+        blocks += [
+            Para(
+                f"Step {st['step']}: every shared term and drift fitted jointly; one must "
+                f"reach p < {st['limit_p']:.2g} and ΔBIC > {st['min_delta_bic']:g}, and gain "
+                "where a recording can be left out:"
+            ),
+            Table(
+                ("candidate", "k", "shapes", "W", "p", "ΔBIC", "decision"),
+                tuple(
+                    (
+                        t["name"],
+                        str(t["k"]),
+                        str(t["looks"]),
+                        fmt(t["statistic"], 4),
+                        p_text(t["p_value"]).removeprefix("p = "),
+                        fmt(t["delta_bic"], 4),
+                        t["verdict"],
+                    )
+                    for t in sorted(d["candidates"][st["step"] - 1]["tested"], key=_by_bic)
+                ),
+            ),
+        ]
+    before, after = d["fit"]["before"], d["fit"]["after"]
+    blocks += [
+        Heading("Fit"),
+        Table(
+            ("", "base", "final"),
+            (
+                ("weighted joint cost", fmt(before["cost"], 6), fmt(after["cost"], 6)),
+                ("parameters", str(len(before["parameters"])), str(len(after["parameters"]))),
+            ),
+        ),
+        *timing_blocks(diag.clock),
+    ]
+    return blocks
+
+
+def _by_bic(t: Mapping[str, Any]) -> float:
+    b = t["delta_bic"]
+    return -b if isinstance(b, float) and math.isfinite(b) else math.inf
+
+
+def write_across(diag: AcrossDiagnosis, out_dir: str | Path) -> dict[str, Path]:
+    """Write diagnosis.json, report.md and report.html into ``out_dir`` (atomic)."""
+    out = make_folder(out_dir)
+    with diag.clock.stage("report", "report"):
+        blocks = across_blocks(diag)
+        paths = {
+            "report": write_text_atomic(out / "report.md", to_markdown(blocks)),
+            "html": write_text_atomic(
+                out / "report.html", to_html(blocks, "Diagnosis across recordings")
+            ),
+        }
+    text = json.dumps(jsonable(diag.to_json()), indent=2, ensure_ascii=False)
+    paths["json"] = write_text_atomic(out / "diagnosis.json", text + "\n")
+    return paths
 
 
 # -- output --------------------------------------------------------------------------------

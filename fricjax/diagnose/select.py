@@ -52,6 +52,8 @@ __all__ = [
     "Scored",
     "Step",
     "Verdict",
+    "outcome",
+    "refused_by_step",
     "select",
 ]
 
@@ -331,3 +333,21 @@ def refused_by_step(
                 (best, sorted((d for d in rivals if d is not best), key=lambda d: -d.fit.rank))
             )
     return out
+
+
+def outcome(step: Step[Any, Any], fit: Scored) -> str:
+    """What the rule made of one candidate of a step, in words (reports, diagnosis.json); a
+    NaN p is a test the data cannot make."""
+    decided = {d.fit.name: d for d in step.decisions}
+    chosen = step.chosen
+    if fit.name in decided:
+        return "named" if decided[fit.name].named else "refused (held out)"
+    if chosen is not None and fit.name in {a.fit.name for a in chosen.alternatives}:
+        return f"cannot be told from {chosen.fit.name}"
+    if fit.passes(step.limit, step.min_delta_bic):
+        return f"passes; {chosen.fit.name} explains more" if chosen is not None else "passes"
+    if math.isnan(fit.p_value):
+        return "not determined by these recordings"
+    if not fit.p_value < step.limit:
+        return "not significant"
+    return "below the ΔBIC bar"

@@ -1,9 +1,10 @@
 """The diagnosis as named stages: their wall time, live progress events and hard time limits.
 
-A :class:`Clock` is handed down the diagnosis (:func:`~fricjax.diagnose.run.diagnose`,
-:func:`~fricjax.diagnose.run.decide`). Each stage is entered with
-:meth:`Clock.stage` (time charged to the innermost open stage, so nested stages are not
-counted twice); work that a limit may cut asks :meth:`Clock.over` first and, when the
+A :class:`Clock` is handed down the diagnosis of one recording or several
+(:func:`~fricjax.diagnose.run.diagnose`, :func:`~fricjax.diagnose.across.diagnose_across`,
+and the forward selection both run, :func:`~fricjax.diagnose.select.select`). Each stage is
+entered with :meth:`Clock.stage` (time charged to the innermost open stage, so nested
+stages are not counted twice); work that a limit may cut asks :meth:`Clock.over` first and, when the
 answer is yes, records what it leaves out with :meth:`Clock.skip`. A limit acts only
 when hit: below every limit the diagnosis runs exactly as without a clock.
 
@@ -27,13 +28,12 @@ from typing import Any
 # name: what the stage does (the progress display and the report's timing table)
 STAGES: dict[str, str] = {
     "base_fit": "base fit (identify, then output error from its estimate)",
-    "candidates": "every candidate's starts and output-error fits",
+    "candidates": "every candidate's fits (output error; joint fits across recordings)",
     "heldout": "record gains and held-out checks of the candidates that pass",
-    "drift": "across recordings: joint fits with one parameter per recording",
     "report": "report, plots and models file",
 }
 # the stages whose work a limit can cut (the others are a single step the diagnosis needs)
-LIMITED = ("candidates", "heldout", "drift")
+LIMITED = ("candidates", "heldout")
 #: Default seconds for a whole diagnosis (``DiagnoseSettings.time_limit``): the bound a
 #: user waits for on any recording up to 30 s. Here, beside the clock, so that the
 #: command line can show it without importing the diagnosis.

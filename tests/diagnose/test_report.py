@@ -71,13 +71,12 @@ def test_markdown_and_html_say_the_same_and_the_html_needs_nothing_outside(tmp_p
 
 
 def test_a_diagnosis_cut_short_never_says_nothing_is_missing() -> None:
-    from fricjax.diagnose.report import _verdict
+    from fricjax.diagnose.report import NOTHING, verdict
     from fricjax.diagnose.stages import Clock
 
     clock = Clock(total=10.0, now=lambda: 0.0)
-    complete = SimpleNamespace(findings=[], clock=clock)
-    assert _verdict(complete).startswith("**Nothing is missing**")
+    assert verdict([], clock, NOTHING).startswith("**Nothing is missing**")
     # the base fit's further rounds left out: the base may sit above its minimum
     clock.skip("base_fit", "base fit: further Levenberg–Marquardt rounds")
-    cut = _verdict(SimpleNamespace(findings=[], clock=clock))
+    cut = verdict([], clock, NOTHING)
     assert "Nothing is missing" not in cut and cut.startswith("**Time limit (10 s in all)")
