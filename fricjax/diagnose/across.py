@@ -103,6 +103,7 @@ from fricjax.diagnose.select import (
     outcome,
     refused_by_step,
     select,
+    vuong_t,
 )
 from fricjax.diagnose.stages import Clock, OnStage
 from fricjax.errors import FricjaxError
@@ -587,15 +588,7 @@ class JointJudge:
             span = float(p.t[-1] - p.t[0]) if p.n > 1 else 0.0
             blocks = max(1, min(b - a, round(span / self.segment_s)))
             sums += [float(np.sum(c)) for c in np.array_split(d[a:b], blocks)]
-        per = np.asarray(sums)
-        S = per.size
-        sd = float(np.std(per, ddof=1)) if S > 1 else math.inf
-        t = (
-            float(np.mean(per) / (sd / math.sqrt(S)))
-            if sd > 0
-            else math.copysign(math.inf, float(np.sum(per)))
-        )
-        return t, max(S - 1, 1)
+        return vuong_t(np.asarray(sums))
 
 
 def location(fit: JointCandidateFit) -> dict[str, Any]:

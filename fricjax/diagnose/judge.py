@@ -66,7 +66,7 @@ from scipy import stats
 
 from fricjax.diagnose.catalogue import CATALOGUE, candidate, grid_size
 from fricjax.diagnose.evidence import NearRest
-from fricjax.diagnose.select import Gain
+from fricjax.diagnose.select import Gain, vuong_t
 from fricjax.diagnose.stages import Clock
 from fricjax.model.simulate import simulate
 from fricjax.model.system import Model
@@ -558,15 +558,7 @@ def vuong(best: Fitted, other: Fitted) -> tuple[float, int]:
     rec = best.superset.record
     d = ((other.fit.x_sim - rec.x) ** 2 - (best.fit.x_sim - rec.x) ** 2) / best.fit.x_scale**2
     seg = np.minimum(np.arange(rec.n) // best.fit.segment_samples, best.fit.n_segments - 1)
-    per = np.bincount(seg, weights=d)
-    S = per.shape[0]
-    sd = float(np.std(per, ddof=1)) if S > 1 else math.inf
-    t = (
-        float(np.mean(per) / (sd / math.sqrt(S)))
-        if sd > 0
-        else math.copysign(math.inf, float(np.sum(per)))
-    )
-    return t, max(S - 1, 1)
+    return vuong_t(np.bincount(seg, weights=d))
 
 
 def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> CandidateFit:

@@ -38,6 +38,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
+import numpy as np
 from scipy import stats
 
 from fricjax.diagnose.stages import Clock
@@ -55,6 +56,7 @@ __all__ = [
     "outcome",
     "refused_by_step",
     "select",
+    "vuong_t",
 ]
 
 
@@ -351,3 +353,19 @@ def outcome(step: Step[Any, Any], fit: Scored) -> str:
     if not fit.p_value < step.limit:
         return "not significant"
     return "below the ΔBIC bar"
+
+
+def vuong_t(blocks: np.ndarray) -> tuple[float, int]:
+    """Vuong's statistic of two models on the same data from ``blocks`` [S], the sums over
+    S blocks of ``d_i = r_other,i² − r_best,i²`` (blocks long against the residual's
+    correlation, so that their sums are nearly independent): ``t = mean(D)/(sd(D)/√S)``,
+    Student's t with S − 1 degrees of freedom where the two explain the data equally
+    well. Returns (t, S − 1); t large: ``best`` is better."""
+    S = blocks.shape[0]
+    sd = float(np.std(blocks, ddof=1)) if S > 1 else math.inf
+    total = float(np.sum(blocks))
+    if sd > 0:
+        t = float(np.mean(blocks) / (sd / math.sqrt(S)))
+    else:  # every block alike: a sure preference, or none where the fits are the same
+        t = math.copysign(math.inf, total) if total != 0 else 0.0
+    return t, max(S - 1, 1)

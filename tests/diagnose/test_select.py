@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import pytest
 
 from fricjax.diagnose.select import (
@@ -21,6 +22,7 @@ from fricjax.diagnose.select import (
     Verdict,
     refused_by_step,
     select,
+    vuong_t,
 )
 from fricjax.diagnose.stages import Clock
 
@@ -186,3 +188,12 @@ def test_the_candidates_refused_at_one_step_make_one_finding_led_by_the_best() -
 def test_a_reported_gain_is_read_by_its_metric_and_nan_when_absent() -> None:
     d = Decision(Fit("a", 1e-9, 50.0), (), (Gain("EMS", -0.2),))
     assert d.gain("EMS") == -0.2 and math.isnan(d.gain("simulation"))
+
+
+def test_vuong_s_t_is_the_mean_block_difference_over_its_standard_error() -> None:
+    t, dof = vuong_t(np.array([1.0, 2.0, 3.0, 4.0, 5.0]))
+    # mean 3, sd √2.5: t = 3 / (√2.5 / √5) = 3·√2
+    assert t == pytest.approx(3 * math.sqrt(2)) and dof == 4
+    # two fits that are the same: no preference, never an infinite one
+    assert vuong_t(np.zeros(6)) == (0.0, 5)
+    assert vuong_t(np.full(4, 2.0))[0] == math.inf
