@@ -214,14 +214,12 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
         "|---|---|---|---|---|---|",
     ]
     for i, f in enumerate(diag.findings, 1):
-        size = ", ".join(f"{k} = {v:.4g}" for k, v in f["params"].items())
-        loc = json.dumps(f["location"], default=float)
+        size = ", ".join(f"{k} = {v:.4g}" for k, v in f.params.items())
+        loc = json.dumps(f.location, default=float)
         if len(loc) > 120:
             loc = loc[:117] + "..."
-        lines.append(
-            f"| {i} | {f['effect']} | {loc} | {size} | {f['p_value']:.2g} | {f['delta_bic']:.1f} |"
-        )
-    lines += ["", *(f"* **{f['effect']}**: {f['explanation']}" for f in diag.findings), ""]
+        lines.append(f"| {i} | {f.label} | {loc} | {size} | {f.p_value:.2g} | {f.delta_bic:.1f} |")
+    lines += ["", *(f"* **{f.label}**: {f.explanation}" for f in diag.findings), ""]
     lines += [
         "## Relative errors before and after, on both files",
         "",
@@ -253,7 +251,7 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
             f"({100 * (1 - last['validation_rel'] / pub['validation_rel']):.1f} % lower), "
             f"EMS {pub['validation_ems']:.2f} -> {last['validation_ems']:.2f} N².",
         ]
-    gains = [f for f in diag.findings if f["effect"] != "unexplained"]
+    gains = [f for f in diag.findings if f.named]
     if gains:
         lines += [
             "",
@@ -263,12 +261,10 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
             "| finding | held-out gains |",
             "|---|---|",
             *(
-                f"| {f['effect']} | "
+                f"| {f.label} | "
                 + "; ".join(
-                    f"{v['on']}: {100 * v['gain']:+.1f} %"
-                    if v["judged"]
-                    else f"{v['check']}: not judged"
-                    for v in f["heldout"]
+                    f"{v.on}: {100 * v.gain:+.1f} %" if v.judged else f"{v.check}: not judged"
+                    for v in f.heldout
                 )
                 + " |"
                 for f in gains
@@ -276,9 +272,9 @@ def _markdown(diag, errors, ours_asym, t_diag: float, t_eval: float, written) ->
         ]
     asym_row = [e for lab, _, e in errors if lab.startswith("authors'")]
     if final and asym_row:
-        refused = [f for f in diag.findings if "rejected_candidate" in f]
-        kept = [f["effect"] for f in gains]
-        dropped = [f["rejected_candidate"]["effect"] for f in refused]
+        refused = [f for f in diag.findings if "rejected_candidate" in f.evidence]
+        kept = [f.label for f in gains]
+        dropped = [f.evidence["rejected_candidate"]["effect"] for f in refused]
         lines += [
             "",
             f"Validation file: diagnosed model {final[-1]['validation_rel']:.3f} %, authors' "

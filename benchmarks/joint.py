@@ -133,9 +133,9 @@ def _kinds(diag) -> set[str]:
     """The kinds of the named findings, each ambiguity set's members included."""
     out = set()
     for f in diag.findings:
-        for e in [f, *f.get("alternatives", [])]:
-            if e["effect"] != "unexplained":
-                out.add("drift" if e["effect"] == DRIFT else "term")
+        for e in [f, *f.alternatives]:
+            if e.named:
+                out.add("drift" if e.effect == DRIFT else "term")
     return out
 
 

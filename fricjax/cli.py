@@ -593,8 +593,9 @@ def diagnose(
     elif not diag.findings:
         typer.echo("no missing physics found (residual consistent with noise)")
     for f in diag.findings:
-        typer.echo(f"{f['effect']}: {p_text(f['p_value'])}, dBIC = {fmt(f['delta_bic'], 4)}")
-        typer.echo(f"  {f['explanation']}")
+        names = " or ".join(f.members)
+        typer.echo(f"{names}: {p_text(f.p_value)}, dBIC = {fmt(f.delta_bic, 4)}")
+        typer.echo(f"  {f.explanation}")
     before, after = diag.fit["before"], diag.fit["after"]
     typer.echo(
         f"EMS {fmt(before['ems'], 6)} -> {fmt(after['ems'], 6)} N^2; output error "
@@ -692,9 +693,8 @@ def _diagnose_across(
     elif not diag.findings:
         typer.echo("nothing found across the recordings (no shared term, no drift)")
     for f in diag.findings:
-        names = " or ".join(a.get("name") or a["effect"] for a in [f, *f.get("alternatives", [])])
-        typer.echo(f"{names}: {p_text(f['p_value'])}, dBIC = {f['delta_bic']:.1f}")
-        typer.echo(f"  {f['explanation']}")
+        typer.echo(f"{' or '.join(f.members)}: {p_text(f.p_value)}, dBIC = {f.delta_bic:.1f}")
+        typer.echo(f"  {f.explanation}")
     typer.echo(f"report: {paths['report']}")
     typer.echo(f"html: {paths['html']}")
 

@@ -190,7 +190,7 @@ def test_blind_diagnosis_names_asymmetry_and_beats_the_published_model(recs, cfg
         validation=paths["validation"],
         overrides={"time_limit": float("inf")},  # findings independent of the machine's load
     )
-    effects = [f["effect"] for f in diag.findings]
+    effects = [f.effect for f in diag.findings]
     assert "asymmetric_friction" in effects
     assert written["json"].is_file() and written["report"].is_file()
     final = diag.final.problem
@@ -203,6 +203,6 @@ def test_blind_diagnosis_names_asymmetry_and_beats_the_published_model(recs, cfg
     e_new = equation_error(val, fcfg, after, decimate_by=10)
     assert e_new.rel_error < 0.97 * e_pub.rel_error  # measured 5.58 vs 5.96 %
     assert equation_error(val, fcfg, after).ems < equation_error(val, cfg, pub).ems
-    asym = next(f for f in diag.findings if f["effect"] == "asymmetric_friction")
-    second = next(v for v in asym["heldout"] if v["check"] == "second recording")
-    assert second["judged"] and second["gain"] > 0
+    asym = next(f for f in diag.findings if f.effect == "asymmetric_friction")
+    second = next(v for v in asym.heldout if v.check == "second recording")
+    assert second.judged and second.gain > 0

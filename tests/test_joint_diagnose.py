@@ -69,10 +69,10 @@ def test_opposite_strokes_find_the_asymmetry_no_stroke_sees_alone(asymmetric) ->
     (finding,) = asymmetric.findings
     # on one-way strokes a shared asymmetry and a Coulomb level per stroke fit alike (a
     # viscous level per stroke nearly so): the finding is the set, never a confident name
-    names = {finding["name"], *(a["name"] for a in finding["alternatives"])}
+    names = set(finding.members)
     assert {"asymmetric_friction", "drift of Fc"} <= names
     assert names <= {"asymmetric_friction", "drift of Fc", "drift of Fv"}
-    assert "moves one way only" in finding["explanation"]
+    assert "moves one way only" in finding.explanation
     step = asymmetric.steps[0]
     fit = next(f for f in step.fits if f.name == "asymmetric_friction")
     value, sd = fit.params["asym_dFc"]
@@ -85,7 +85,7 @@ def test_opposite_strokes_find_the_asymmetry_no_stroke_sees_alone(asymmetric) ->
     assert {r["direction"] for r in asymmetric.recordings} == {"forward", "backward"}
     # with either in, the other is the same direction again: not determined, not named
     second = asymmetric.steps[1]
-    other = ({"asymmetric_friction", "drift of Fc"} - {finding["name"]}).pop()
+    other = ({"asymmetric_friction", "drift of Fc"} - {finding.label}).pop()
     assert outcome(second, next(f for f in second.fits if f.name == other)) == (
         "not determined by these recordings"
     )
@@ -106,8 +106,7 @@ def test_leaving_out_a_stroke_whose_direction_repeats_judges_the_term_and_it_pre
     (finding,) = diag.findings
     # two forward strokes and one back: a Coulomb level that changed in the back stroke fits
     # as the asymmetry does; the finding is the set
-    names = {finding["name"], *(a["name"] for a in finding["alternatives"])}
-    assert {"asymmetric_friction", "drift of Fc"} <= names
+    assert {"asymmetric_friction", "drift of Fc"} <= set(finding.members)
     step = diag.steps[0]
     term = next(f for f in step.fits if f.name == "asymmetric_friction")
     held = LeaveOneOut(tuple(term.base.fit.jp.sigma)).judge(term.base, term.fitted, {})
@@ -186,15 +185,15 @@ def test_a_coulomb_level_moved_by_10_sigma_is_named_as_drift_where_it_moved(axis
     _, _, out = axis_runs
     diag, files = out["moved"]
     (finding,) = diag.findings
-    assert finding["effect"] == "run_drift" and finding["parameter"] == "Fc"
-    assert finding["moved"] == ["moved3"] and finding["alternatives"] == []
-    values = [v["value"] for v in finding["values"]]
-    sigmas = [v["sigma"] for v in finding["values"]]
+    assert finding.effect == "run_drift" and finding.evidence["parameter"] == "Fc"
+    assert finding.evidence["moved"] == ["moved3"] and finding.alternatives == ()
+    values = [v["value"] for v in finding.evidence["values"]]
+    sigmas = [v["sigma"] for v in finding.evidence["values"]]
     # the moved run's level is 9 N above the others', each within 3 σ of its truth
     for value, sd, truth in zip(values, sigmas, (20.0, 20.0, 29.0), strict=True):
         assert abs(value - truth) < 3 * sd
     assert values[2] - values[0] > 5 * np.hypot(sigmas[0], sigmas[2])
-    assert finding["p_value"] < diag.steps[0].limit and finding["delta_bic"] > 10.0
+    assert finding.p_value < diag.steps[0].limit and finding.delta_bic > 10.0
     # Fv per recording also fits better than Fv shared with Fc wrong for run 3, but less
     # than Fc per recording; tested again beside Fc[k], it has not moved
     first, again = _tested(diag)["drift of Fv"]

@@ -96,11 +96,13 @@ from fricjax.diagnose.catalogue import CATALOGUE, Candidate, candidate
 from fricjax.diagnose.evidence import effective_dof, record_noise
 from fricjax.diagnose.select import (
     Decision,
+    Finding,
     Gain,
     Rule,
     Step,
     Verdict,
     outcome,
+    refused,
     refused_by_step,
     select,
     vuong_t,
@@ -659,7 +661,7 @@ class AcrossDiagnosis:
 
     recordings: list[dict[str, Any]]
     steps: list[Step[JointModel, JointCandidateFit]]
-    findings: list[dict[str, Any]]
+    findings: list[Finding]
     base: JointModel
     final: JointModel
     settings: dict[str, Any]
@@ -669,7 +671,7 @@ class AcrossDiagnosis:
         return {
             "kind": "diagnosis across recordings",
             "recordings": self.recordings,
-            "findings": self.findings,
+            "findings": [f.as_json() for f in self.findings],
             "fit": {"before": _fit_summary(self.base), "after": _fit_summary(self.final)},
             "candidates": [
                 {
@@ -722,7 +724,10 @@ def diagnose_across(
     named = [st.chosen for st in steps if st.chosen is not None]
     final = named[-1].fit.fitted if named else base
     findings = [_finding(d, nu, st.limit) for st in steps if (d := st.chosen) is not None]
-    findings += [_refused(best, rest) for best, rest in refused_by_step(steps)]
+    findings += [
+        refused(best, rest, location(best.fit), _candidate_json(best.fit, "refused (held out)"))
+        for best, rest in refused_by_step(steps)
+    ]
     recordings = [
         {
             "name": p.name,
@@ -777,79 +782,84 @@ def _candidate_json(f: JointCandidateFit, verdict: str) -> dict[str, Any]:
     }
 
 
-def _finding(d: Decision[JointCandidateFit], nu: int, level: float) -> dict[str, Any]:
-    """One named finding of diagnosis.json (the layout of one recording's, plus ``name``,
-    ``sigma`` and, for a drift, ``parameter``, ``values`` and ``moved``: the recordings
+def _finding(d: Decision[JointCandidateFit], nu: int, level: float) -> Finding:
+    """One named finding (one recording's layout, plus ``name``, ``sigma``, Wald's
+    statistic and, for a drift, ``parameter``, ``values`` and ``moved``: the recordings
     whose value moved, at the step's ``level``)."""
-    f, verdicts, alternatives = d.fit, d.verdicts, d.alternatives
-    out: dict[str, Any] = {
-        "effect": f.effect,
-        "name": f.name,
-        "explanation": "",
-        "location": location(f),
-        "params": {n: v for n, (v, _) in f.params.items()},
+    f = d.fit
+    evidence: dict[str, Any] = {
         "sigma": {n: s for n, (_, s) in f.params.items()},
-        "delta_bic": f.delta_bic,
-        "p_value": f.p_value,
         "statistic": f.test.statistic,
         "dof": f.test.dof,
         "test": "Wald, joint equation error in the recordings' own noise",
-        "heldout": [v.as_json() for v in verdicts],
-        "alternatives": [
-            {
-                "effect": a.fit.effect,
-                "name": a.fit.name,
-                "params": {n: v for n, (v, _) in a.fit.params.items()},
-                "location": location(a.fit),
-                "delta_bic": a.fit.delta_bic,
-                "p_value": a.fit.p_value,
-                "vuong_t": a.t,
-                "vuong_p": a.p_value,
-            }
-            for a in alternatives
-        ],
     }
     if f.effect == DRIFT:
         members = f.fitted.problems
         cols = list(f.params)
-        out["parameter"] = f.parameter
-        out["values"] = [
-            {"recording": p.name, **_pm(*f.params[c])} for p, c in zip(members, cols, strict=True)
-        ]
         # of two recordings, neither is the odd one out
         moved = _moved(f.fitted.fit, cols, nu, level) if len(members) > 2 else []
-        out["moved"] = [members[k].name for k in moved]
-    out["explanation"] = _explain(f, out, verdicts, alternatives)
-    return out
+        evidence |= {
+            "parameter": f.parameter,
+            "values": [
+                {"recording": p.name, **_pm(*f.params[c])}
+                for p, c in zip(members, cols, strict=True)
+            ],
+            "moved": [members[k].name for k in moved],
+        }
+    return Finding(
+        effect=f.effect,
+        name=f.name,
+        explanation=_explain(f, evidence, d),
+        location=location(f),
+        params=_values(f),
+        delta_bic=f.delta_bic,
+        p_value=f.p_value,
+        heldout=d.verdicts,
+        alternatives=tuple(
+            Finding(
+                effect=a.fit.effect,
+                name=a.fit.name,
+                explanation="",
+                location=location(a.fit),
+                params=_values(a.fit),
+                delta_bic=a.fit.delta_bic,
+                p_value=a.fit.p_value,
+                evidence={"vuong_t": a.t, "vuong_p": a.p_value},
+            )
+            for a in d.alternatives
+        ),
+        evidence=evidence,
+    )
+
+
+def _values(f: JointCandidateFit) -> dict[str, float]:
+    return {n: v for n, (v, _) in f.params.items()}
 
 
 def _explain(
-    f: JointCandidateFit,
-    finding: Mapping[str, Any],
-    verdicts: Sequence[Verdict],
-    alternatives: Sequence[Any],
+    f: JointCandidateFit, evidence: Mapping[str, Any], d: Decision[JointCandidateFit]
 ) -> str:
     """The finding in words: what, the test, the held-out check, the rivals."""
     if f.effect == DRIFT:
         unit = f.base.problems[0].spec[f.parameter].unit
         parts = ", ".join(
             f"{v['value']:.4g} ± {v['sigma']:.2g}" if v["sigma"] else f"{v['value']:.4g}"
-            for v in finding["values"]
+            for v in evidence["values"]
         )
         text = (
             f"{f.parameter} differs between the recordings beyond its σ: {parts} {unit} "
             f"(W = {f.test.statistic:.1f} on {f.test.dof} degrees of freedom, "
             f"{p_text(f.p_value)})"
             + (
-                f"; it moved in {', '.join(finding['moved'])}."
-                if finding["moved"]
+                f"; it moved in {', '.join(evidence['moved'])}."
+                if evidence["moved"]
                 else "; which recording moved, these cannot tell."
             )
         )
     else:
         first = f.fitted.problems[0]
-        text = candidate(f.effect).explain({**first.spec.as_dict(), **finding["params"]}, first)
-        held = next((v for v in verdicts if v.judged), None)
+        text = candidate(f.effect).explain({**first.spec.as_dict(), **_values(f)}, first)
+        held = next((v for v in d.verdicts if v.judged), None)
         if held is not None:
             text += (
                 f" Leaving one recording out, it predicts the left-out ones better: their "
@@ -861,8 +871,8 @@ def _explain(
                 " No recording can be left out with the term still determined by the others, "
                 "so it rests on its p-value and ΔBIC across all of them."
             )
-    if alternatives:
-        names = ", ".join(a.fit.name for a in alternatives)
+    if d.alternatives:
+        names = ", ".join(a.fit.name for a in d.alternatives)
         text += (
             f" These recordings cannot tell it from {names}: each explains them about as "
             "well (Vuong's test not significant)."
@@ -874,32 +884,6 @@ def _explain(
                 "tell a direction asymmetry from a level that changed between runs."
             )
     return text
-
-
-def _refused(best: Any, rivals: Sequence[Any]) -> dict[str, Any]:
-    """``unexplained`` where candidates passed the statistics but not the held-out check:
-    the recordings hold something that these candidates do not explain in a way that
-    carries over to a recording their fit has not seen."""
-    f = best.fit
-    held = next(v for v in best.verdicts if v.judged)
-    others = [r.fit.name for r in rivals]
-    return {
-        "effect": "unexplained",
-        "explanation": (
-            f"The recordings hold structure that {f.name} lowers BIC by {f.delta_bic:.1f} on, "
-            f"but leaving one recording out it predicts worse ({100 * held.gain:+.1f} %): it "
-            "is not claimed." + (f" Refused as well: {', '.join(others)}." if others else "")
-        ),
-        "location": location(f),
-        "params": {},
-        "delta_bic": f.delta_bic,
-        "p_value": f.p_value,
-        "rejected_candidate": {"effect": f.effect, "name": f.name, "heldout": held.as_json()},
-        "rejected_alternatives": [
-            {"name": r.fit.name, "delta_bic": r.fit.delta_bic, "p_value": r.fit.p_value}
-            for r in rivals
-        ],
-    }
 
 
 def _pm(value: float, sd: float) -> dict[str, float | None]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from fricjax.diagnose.run import jsonable
-from fricjax.diagnose.select import outcome
+from fricjax.diagnose.select import Finding, Verdict, outcome
 from fricjax.io.atomic import make_folder, write_hdf5_atomic, write_text_atomic
 from fricjax.params import on_bound
 from fricjax.report.document import Block, Heading, Image, Items, Para, Table, to_html, to_markdown
@@ -119,7 +119,7 @@ def residual_figure(diag: Diagnosis, path: Path) -> Path:
         r = (m.fit.x_sim - pb.x) / m.fit.x_scale
         ax.plot(pb.t, r, lw=0.8, label=f"{label} ({m.cost:.4g} σ_x² in all)")
     for f in diag.findings:
-        span = f.get("location", {}).get("time_s")
+        span = f.location.get("time_s")
         if isinstance(span, list | tuple) and len(span) == 2:
             ax.axvspan(float(span[0]), float(span[1]), color="tab:orange", alpha=0.15)
     ax.axhline(2, color="0.6", lw=0.6, ls=":")
@@ -132,7 +132,7 @@ def residual_figure(diag: Diagnosis, path: Path) -> Path:
     return save(fig, path)
 
 
-def verdict(findings: list[dict[str, Any]], clock: Clock, nothing: str) -> str:
+def verdict(findings: Sequence[Finding], clock: Clock, nothing: str) -> str:
     """The report's first sentence: the time limit (if hit), then the findings, an
     ambiguity set as ``a`` or ``b``; ``nothing``: what an empty diagnosis means."""
     cut = clock.headline()
@@ -140,14 +140,8 @@ def verdict(findings: list[dict[str, Any]], clock: Clock, nothing: str) -> str:
     return f"**{cut}** {text}" if cut else text
 
 
-def _label(f: Mapping[str, Any]) -> str:
-    """How a finding or alternative is named: its ``name`` (``drift of Fc``), else its
-    effect."""
-    return str(f.get("name") or f["effect"])
-
-
-def _findings_verdict(findings: list[dict[str, Any]], clock: Clock, nothing: str) -> str:
-    named = [f for f in findings if f["effect"] != "unexplained"]
+def _findings_verdict(findings: Sequence[Finding], clock: Clock, nothing: str) -> str:
+    named = [f for f in findings if f.named]
     unexplained = len(findings) - len(named)
     if not findings and clock.skipped:
         # a diagnosis cut short cannot say that nothing is missing
@@ -156,9 +150,7 @@ def _findings_verdict(findings: list[dict[str, Any]], clock: Clock, nothing: str
         return nothing
     parts = []
     if named:
-        shown = [
-            " or ".join(f"`{_label(e)}`" for e in [f, *f.get("alternatives", [])]) for f in named
-        ]
+        shown = [" or ".join(f"`{m}`" for m in f.members) for f in named]
         parts.append(f"**{len(named)} finding(s)**: " + ", ".join(shown))
     if unexplained:
         parts.append(
@@ -203,44 +195,63 @@ def fit_blocks(diag: Diagnosis) -> list[Block]:
     ]
 
 
-def finding_blocks(diag: Diagnosis) -> list[Block]:
+def finding_blocks(
+    findings: Sequence[Finding],
+    parameters: Callable[[Mapping[str, float], Finding], tuple[str, list[str]]],
+    data: str,
+) -> list[Block]:
+    """Each finding with its evidence, for one record or several (``data``: "record" or
+    "recordings"): what and where, its parameters (``parameters(params, finding)``: the
+    text and a sentence for each on a bound), its statistics, the held-out checks (each
+    part where a check has parts), the warnings and the candidates it cannot be told from."""
     blocks: list[Block] = []
-    for i, f in enumerate(diag.findings, 1):
-        blocks.append(Heading(f"Finding {i}: `{f['effect']}`", 3))
-        blocks.append(Para(f["explanation"]))
-        blocks.append(Para(f"Where: {where_text(f.get('location', {}))}."))
-        if f.get("params"):
-            shown, bounds = params_text(diag, f["params"])
+    for i, f in enumerate(findings, 1):
+        blocks += [Heading(f"Finding {i}: `{f.label}`", 3), Para(f.explanation)]
+        blocks.append(Para(f"Where: {where_text(f.location)}."))
+        if f.params:
+            shown, bounds = parameters(f.params, f)
             blocks.append(Para(f"Parameters: {shown}."))
             if bounds:
                 blocks.append(Items(tuple(bounds)))
-        if f["effect"] != "unexplained":
-            held = "; ".join(
-                f"{v['on']}: {100 * v['gain']:+.1f} %"
-                if v["judged"]
-                else f"{v['check']}: not judged ({v.get('why', '')})"
-                for v in f["heldout"]
-            )
+        if not f.named:
+            continue
+        blocks.append(Para(_statistics(f)))
+        held = [q for v in f.heldout for q in (v.parts or (v,))]
+        if held:
+            blocks += [Para("Held out:"), Items(tuple(_held_text(q) for q in held))]
+        for w in f.warnings:
+            blocks.append(Para(f"**Warning**: {w}.", "note"))
+        for a in f.alternatives:
+            shown, _ = parameters(a.params, a)
             blocks.append(
                 Para(
-                    f"ΔBIC {f['delta_bic']:.1f}, {p_text(f['p_value'])}; held out: {held}; "
-                    f"record EMS {_pct(f['record_ems_gain'])}, simulation error "
-                    f"{_pct(f['record_simulation_gain'])} better."
+                    f"Or `{a.label}` ({where_text(a.location)}; {shown}): ΔBIC "
+                    f"{a.delta_bic:.1f}; the {data} does not prefer `{f.label}` over it "
+                    f"(Vuong t = {a.evidence['vuong_t']:.2f}, {p_text(a.evidence['vuong_p'])})."
                 )
             )
-            for w in f.get("warnings", []):
-                blocks.append(Para(f"**Warning**: {w}.", "note"))
-            for a in f.get("alternatives", []):
-                shown, _ = params_text(diag, a["params"])
-                blocks.append(
-                    Para(
-                        f"Or `{a['effect']}` ({where_text(a['location'])}; {shown}): ΔBIC "
-                        f"{a['delta_bic']:.1f}; the record does not prefer "
-                        f"`{f['effect']}` over it (Vuong t = {a['vuong_t']:.2f}, "
-                        f"{p_text(a['vuong_p'])})."
-                    )
-                )
     return blocks
+
+
+def _statistics(f: Finding) -> str:
+    """ΔBIC and p, with the judge's own figures: Wald's W across recordings; the record's
+    EMS and simulation error beside one record's (reported, never judged)."""
+    e = f.evidence
+    text = f"ΔBIC {f.delta_bic:.1f}, {p_text(f.p_value)}"
+    if "statistic" in e:
+        text += f"; W = {e['statistic']:.2f} on {e['dof']} degrees of freedom"
+    if "record_ems_gain" in e:
+        text += (
+            f"; record EMS {_pct(e['record_ems_gain'])}, simulation error "
+            f"{_pct(e['record_simulation_gain'])} better"
+        )
+    return text + "."
+
+
+def _held_text(v: Verdict) -> str:
+    if not v.judged:
+        return f"{v.on}: not judged ({v.why})"
+    return f"{v.on}: {100 * v.gain:+.1f} % (cost {fmt(v.cost_base, 4)} → {fmt(v.cost_term, 4)})"
 
 
 def _candidate_row(st: Step[Fitted, CandidateFit], f: CandidateFit) -> tuple[str, ...]:
@@ -304,7 +315,7 @@ def report_blocks(diag: Diagnosis, figure: Path) -> list[Block]:
             f"Base model: `{diag.base_model}`. "
             f"Verdict: {verdict(diag.findings, diag.clock, NOTHING)}"
         ),
-        *finding_blocks(diag),
+        *finding_blocks(diag.findings, lambda params, _: params_text(diag, params), "record"),
         *data_blocks(diag),
         *fit_blocks(diag),
         Image(figure, "Output-error residual of the base and final models; orange: findings."),
@@ -332,9 +343,15 @@ def write_reports(diag: Diagnosis, out: Path) -> dict[str, Path]:
 NOTHING_ACROSS = "**Nothing found**: no shared catalogue term and no drift passes the judge."
 
 
-def _pm_text(value: Mapping[str, Any]) -> str:
-    sd = value.get("sigma")
-    return f"{fmt(value['value'], 4)} ± {fmt(sd, 2)}" if sd else fmt(value["value"], 4)
+def _with_sigma(params: Mapping[str, float], f: Finding) -> tuple[str, list[str]]:
+    """``value ± σ (name)`` for each parameter of a joint finding (no bounds are flagged:
+    the joint box is the union of the recordings')."""
+    sigma = f.evidence.get("sigma", {})
+    shown = ", ".join(
+        (f"{fmt(v, 4)} ± {fmt(sigma[n], 2)}" if sigma.get(n) else fmt(v, 4)) + f" ({n})"
+        for n, v in params.items()
+    )
+    return shown, []
 
 
 def across_blocks(diag: AcrossDiagnosis) -> list[Block]:
@@ -345,43 +362,7 @@ def across_blocks(diag: AcrossDiagnosis) -> list[Block]:
         Heading(f"Diagnosis across {len(d['recordings'])} recordings", 1),
         Para(f"Verdict: {verdict(diag.findings, diag.clock, NOTHING_ACROSS)}"),
     ]
-    for i, f in enumerate(diag.findings, 1):
-        blocks += [Heading(f"Finding {i}: `{_label(f)}`", 3), Para(f["explanation"])]
-        blocks.append(Para(f"Where: {where_text(f.get('location', {}))}."))
-        if f.get("params"):
-            shown = ", ".join(
-                _pm_text({"value": v, "sigma": f.get("sigma", {}).get(n)}) + f" ({n})"
-                for n, v in f["params"].items()
-            )
-            blocks.append(Para(f"Parameters: {shown}."))
-        if f["effect"] == "unexplained":
-            continue
-        blocks.append(
-            Para(
-                f"W = {f['statistic']:.2f} ({f['dof']} dof), {p_text(f['p_value'])}, ΔBIC "
-                f"{f['delta_bic']:.1f}."
-            )
-        )
-        for v in f["heldout"]:
-            parts = v.get("parts") or [v]
-            blocks.append(
-                Items(
-                    tuple(
-                        f"{q['on']}: cost {fmt(q['cost_base'], 4)} → {fmt(q['cost_term'], 4)}"
-                        if q["judged"]
-                        else f"{q['on']}: not judged ({q.get('why', '')})"
-                        for q in parts
-                    )
-                )
-            )
-        for a in f.get("alternatives", []):
-            blocks.append(
-                Para(
-                    f"Or `{_label(a)}` ({where_text(a['location'])}): ΔBIC "
-                    f"{a['delta_bic']:.1f}; the recordings do not prefer `{_label(f)}` over it "
-                    f"(Vuong t = {a['vuong_t']:.2f}, {p_text(a['vuong_p'])})."
-                )
-            )
+    blocks += finding_blocks(diag.findings, _with_sigma, "recordings")
     blocks += [
         Heading("The recordings"),
         Table(

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -55,7 +54,16 @@ from fricjax.diagnose.judge import (
     lack_of_fit_p,
     simulation_error,
 )
-from fricjax.diagnose.select import Check, Decision, Rule, Step, refused_by_step, select
+from fricjax.diagnose.select import (
+    Check,
+    Decision,
+    Finding,
+    Rule,
+    Step,
+    refused,
+    refused_by_step,
+    select,
+)
 from fricjax.diagnose.stages import LIMITED, TIME_LIMIT_S, Clock, OnStage
 from fricjax.errors import FricjaxError, where
 from fricjax.identify import IdentifySettings, identify
@@ -192,7 +200,7 @@ class Diagnosis:
 
     recording: str
     base_model: str
-    findings: list[dict[str, Any]]
+    findings: list[Finding]
     fit: dict[str, dict[str, float]]
     problem: Problem
     base: Fitted
@@ -208,7 +216,7 @@ class Diagnosis:
             {
                 "recording": self.recording,
                 "base_model": self.base_model,
-                "findings": self.findings,
+                "findings": [f.as_json() for f in self.findings],
                 "fit": self.fit,
                 "data": {
                     "sigma_x_m": self.evidence.sigma_x,
@@ -318,10 +326,18 @@ def diagnose(
     named = [st.chosen for st in steps if st.chosen is not None]
     final = named[-1].fit.fitted if named else base
     findings = [_finding(problem, d, st) for st in steps if (d := st.chosen) is not None]
-    refused = [_refused(problem, best, rest) for best, rest in refused_by_step(steps)]
+    refused_ = [
+        refused(
+            best,
+            rest,
+            candidate(best.fit.effect).location(best.fit.params, problem),
+            {"effect": best.fit.effect, "params": best.fit.params, **_decision_json(best)},
+        )
+        for best, rest in refused_by_step(steps)
+    ]
     lof_before, lof_after = lack_of_fit_p(base, evidence.nu), lack_of_fit_p(final, evidence.nu)
-    if refused:
-        findings += refused
+    if refused_:
+        findings += refused_
     elif lof_after < settings.alpha and not named:
         findings.append(_unexplained(final, lof_after, evidence.nu))
     sim_before = simulation_error(base)
@@ -388,8 +404,8 @@ def _warnings(d: Decision[CandidateFit]) -> list[str]:
 
 def _finding(
     problem: Problem, d: Decision[CandidateFit], step: Step[Fitted, CandidateFit]
-) -> dict[str, Any]:
-    """One named finding of diagnosis.json; an ambiguity set keeps its best member as
+) -> Finding:
+    """One named finding; an ambiguity set keeps its best member as
     ``effect`` and the others under ``alternatives``."""
     f = d.fit
     cand = candidate(f.effect)
@@ -411,84 +427,41 @@ def _finding(
             "(Vuong's test not significant); a test that moves the body differently would "
             "separate them."
         )
-    return {
-        "effect": f.effect,
-        "explanation": explanation,
-        "location": cand.location(f.params, problem),
-        "params": f.params,
-        "at_bound": at_bounds(f.fitted.problem.spec, f.params),
-        "delta_bic": f.delta_bic,
-        "p_value": f.p_value,
-        "lr": f.lr,
-        "misfit_share": share,
-        "test": "output error",
-        "record_ems_gain": d.gain(EMS),
-        "record_simulation_gain": d.gain(SIMULATION),
-        "warnings": _warnings(d),
-        "heldout": [v.as_json() for v in d.verdicts],
-        "alternatives": [
-            {
-                "effect": a.fit.effect,
-                "params": a.fit.params,
-                "location": candidate(a.fit.effect).location(a.fit.params, problem),
-                "delta_bic": a.fit.delta_bic,
-                "p_value": a.fit.p_value,
-                "vuong_t": a.t,
-                "vuong_p": a.p_value,
-            }
-            for a in d.alternatives
-        ],
-        "runner_up": runner[0].effect if runner else "",
-        "runner_up_delta_bic": runner[0].delta_bic if runner else math.nan,
-    }
-
-
-def _refused(
-    problem: Problem,
-    d: Decision[CandidateFit],
-    rivals: Sequence[Decision[CandidateFit]] = (),
-) -> dict[str, Any]:
-    """``unexplained`` at the place of a candidate that passed the statistics but not
-    cross-validation: the record holds something there that this term does not explain in
-    a way that carries over to data its fit has not seen. ``rivals``: the other candidates
-    refused at the same step (``rejected_alternatives``, by ΔBIC)."""
-    f = d.fit
-    location = candidate(f.effect).location(f.params, problem)
-    if not any(v.judged for v in d.verdicts):
-        why = "no held-out check can judge it (" + "; ".join(v.why for v in d.verdicts) + ")"
-    else:
-        worst = min((v for v in d.verdicts if v.judged), key=lambda v: v.gain)
-        why = f"on the {worst.on} it makes the held-out fit worse ({100 * worst.gain:+.1f} %)"
-    return {
-        "effect": "unexplained",
-        "explanation": (
-            f"The record holds structure that {f.effect} lowers BIC by {f.delta_bic:.1f} "
-            f"on, but {why}: it is not claimed."
-            + (
-                f" {_words([r.fit.effect for r in rivals])} fitted it too and "
-                f"{'was' if len(rivals) == 1 else 'were'} refused as well."
-                if rivals
-                else ""
+    return Finding(
+        effect=f.effect,
+        explanation=explanation,
+        location=cand.location(f.params, problem),
+        params=f.params,
+        delta_bic=f.delta_bic,
+        p_value=f.p_value,
+        heldout=d.verdicts,
+        warnings=tuple(_warnings(d)),
+        alternatives=tuple(
+            Finding(
+                effect=a.fit.effect,
+                explanation="",
+                location=candidate(a.fit.effect).location(a.fit.params, problem),
+                params=a.fit.params,
+                delta_bic=a.fit.delta_bic,
+                p_value=a.fit.p_value,
+                evidence={"vuong_t": a.t, "vuong_p": a.p_value},
             )
+            for a in d.alternatives
         ),
-        "location": location,
-        "params": {},
-        "delta_bic": f.delta_bic,
-        "p_value": f.p_value,
-        "rejected_candidate": {"effect": f.effect, "params": f.params, **_decision_json(d)},
-        "rejected_alternatives": [
-            {"effect": r.fit.effect, "delta_bic": r.fit.delta_bic, "p_value": r.fit.p_value}
-            for r in rivals
-        ],
-    }
+        evidence={
+            "at_bound": at_bounds(f.fitted.problem.spec, f.params),
+            "lr": f.lr,
+            "misfit_share": share,
+            "test": "output error",
+            "record_ems_gain": d.gain(EMS),
+            "record_simulation_gain": d.gain(SIMULATION),
+            "runner_up": runner[0].effect if runner else "",
+            "runner_up_delta_bic": runner[0].delta_bic if runner else math.nan,
+        },
+    )
 
 
-def _words(names: Sequence[str]) -> str:
-    """``a``, ``a and b``, ``a, b and c``."""
-    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
-
-
-def _unexplained(model: Fitted, p: float, nu: int) -> dict[str, Any]:
+def _unexplained(model: Fitted, p: float, nu: int) -> Finding:
     """``unexplained`` where the model misfits the record's noise and no candidate passes:
     located at the segment of the multiple shooting whose samples misfit most (its share of
     the cost over its share of the samples)."""
@@ -500,21 +473,21 @@ def _unexplained(model: Fitted, p: float, nu: int) -> dict[str, Any]:
     idx = np.flatnonzero(seg == s)
     dof = max(f.n_residual - model.n_free - 2 * f.n_segments, 1)
     excess = float(f.cost - dof)
-    return {
-        "effect": "unexplained",
-        "explanation": (
+    return Finding(
+        effect="unexplained",
+        explanation=(
             f"The model leaves more output error than the record's noise accounts for "
             f"({f.cost:.4g} σ_x² over {dof} degrees of freedom, {p_text(p)}), and no catalogue "
             f"term explains it. It misfits most over t = {pb.t[idx[0]]:.4g} to "
             f"{pb.t[idx[-1]]:.4g} s ({per[s]:.3g} σ_x² per sample there; the record is "
             f"{float(pb.t[-1] - pb.t[0]):.3g} s long)."
         ),
-        "location": {
+        location={
             "time_s": [float(pb.t[idx[0]]), float(pb.t[idx[-1]])],
             "position_m": [float(np.min(pb.x[idx])), float(np.max(pb.x[idx]))],
         },
-        "params": {},
+        params={},
         # a term that explained all of it would lower BIC by about this, less its penalty
-        "delta_bic": excess,
-        "p_value": p,
-    }
+        delta_bic=excess,
+        p_value=p,
+    )

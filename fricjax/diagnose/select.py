@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
@@ -47,6 +47,7 @@ __all__ = [
     "Alternative",
     "Check",
     "Decision",
+    "Finding",
     "Gain",
     "Judge",
     "Rule",
@@ -54,6 +55,7 @@ __all__ = [
     "Step",
     "Verdict",
     "outcome",
+    "refused",
     "refused_by_step",
     "select",
     "vuong_t",
@@ -194,6 +196,73 @@ class Step(Generic[M, F]):
     @property
     def chosen(self) -> Decision[F] | None:
         return next((d for d in self.decisions if d.named), None)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One finding of a diagnosis, of one recording or several: an entry of diagnosis.json's
+    ``findings`` (docs/formats.md).
+
+    Attributes:
+        effect: the catalogue name, ``run_drift`` or ``unexplained``.
+        explanation: what, where and why, in plain words.
+        location: where it acts (time, position, speed, frequency, recordings).
+        params: the added term's parameters [SI].
+        delta_bic: BIC(base) − BIC(base + it); > 0 favours it.
+        p_value: its calibrated significance.
+        name: how it is called where that is not ``effect`` (``drift of Fc``).
+        heldout: the held-out verdicts that judged it.
+        warnings: plain warnings where it makes what a user sees worse (reported only).
+        alternatives: the candidates the data cannot tell from it (an ambiguity set), each
+            with its Vuong ``t`` and p under ``evidence``.
+        evidence: the judge's own figures (docs/formats.md lists each).
+    """
+
+    effect: str
+    explanation: str
+    location: dict[str, Any]
+    params: dict[str, float]
+    delta_bic: float
+    p_value: float
+    name: str = ""
+    heldout: tuple[Verdict, ...] = ()
+    warnings: tuple[str, ...] = ()
+    alternatives: tuple[Finding, ...] = ()
+    evidence: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        """How the finding is called: ``name``, else ``effect``."""
+        return self.name or self.effect
+
+    @property
+    def named(self) -> bool:
+        """A physical explanation (not ``unexplained``)."""
+        return self.effect != "unexplained"
+
+    @property
+    def members(self) -> tuple[str, ...]:
+        """The labels of the finding and of its alternatives, best first."""
+        return (self.label, *(a.label for a in self.alternatives))
+
+    def as_json(self) -> dict[str, Any]:
+        """The diagnosis.json entry (docs/formats.md)."""
+        out: dict[str, Any] = {"effect": self.effect}
+        if self.name:
+            out["name"] = self.name
+        out |= {
+            "explanation": self.explanation,
+            "location": self.location,
+            "params": self.params,
+            "delta_bic": self.delta_bic,
+            "p_value": self.p_value,
+            **self.evidence,
+        }
+        if self.heldout:  # a named finding (an alternative and `unexplained` have none)
+            out["warnings"] = list(self.warnings)
+            out["heldout"] = [v.as_json() for v in self.heldout]
+            out["alternatives"] = [a.as_json() for a in self.alternatives]
+        return out
 
 
 class Judge(Protocol[M, F]):
@@ -369,3 +438,52 @@ def vuong_t(blocks: np.ndarray) -> tuple[float, int]:
     else:  # every block alike: a sure preference, or none where the fits are the same
         t = math.copysign(math.inf, total) if total != 0 else 0.0
     return t, max(S - 1, 1)
+
+
+def refused(
+    best: Decision[Any],
+    rivals: Sequence[Decision[Any]],
+    location: dict[str, Any],
+    rejected: dict[str, Any],
+) -> Finding:
+    """``unexplained`` at the place (``location``) of a candidate that passed the
+    statistics but not the held-out checks: the data hold something there that it does not
+    explain in a way that carries over to data its fit has not seen. ``rivals``: the other
+    candidates refused at the same step (:func:`refused_by_step`); ``rejected``: the refused
+    candidate as the judge reports it (``rejected_candidate``)."""
+    f = best.fit
+    judged = [v for v in best.verdicts if v.judged]
+    if not judged:
+        why = "no held-out check can judge it (" + "; ".join(v.why for v in best.verdicts) + ")"
+    else:
+        worst = min(judged, key=lambda v: v.gain)
+        why = f"on the {worst.on} it makes the held-out fit worse ({100 * worst.gain:+.1f} %)"
+    names = [r.fit.name for r in rivals]
+    also = (
+        f" {words(names)} fitted it too and {'was' if len(names) == 1 else 'were'} refused as well."
+        if names
+        else ""
+    )
+    return Finding(
+        effect="unexplained",
+        explanation=(
+            f"The data hold structure that {f.name} lowers BIC by {f.delta_bic:.1f} on, but "
+            f"{why}: it is not claimed.{also}"
+        ),
+        location=location,
+        params={},
+        delta_bic=f.delta_bic,
+        p_value=f.p_value,
+        evidence={
+            "rejected_candidate": rejected,
+            "rejected_alternatives": [
+                {"effect": r.fit.name, "delta_bic": r.fit.delta_bic, "p_value": r.fit.p_value}
+                for r in rivals
+            ],
+        },
+    )
+
+
+def words(names: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"

@@ -1,7 +1,7 @@
 """Held-out checks of one record (fricjax.diagnose.heldout) and what the single-record report
 makes of their verdicts: the record's EMS and simulation error are reported beside a term,
-never a veto; a refused term is ``unexplained`` at its place; the folds of the
-cross-validation interleave over the whole record."""
+never a veto; the folds of the cross-validation interleave over the whole record; a held-out
+cost moves no fixed parameter."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 
 from fricjax.diagnose.heldout import folds
 from fricjax.diagnose.judge import EMS, SIMULATION
-from fricjax.diagnose.run import _refused, _warnings
+from fricjax.diagnose.run import _warnings
 from fricjax.diagnose.select import Decision, Gain, Verdict
 from fricjax.output_error import OutputErrorSettings
 
@@ -50,15 +50,6 @@ def test_the_record_s_ems_and_simulation_warn_but_never_refuse() -> None:
     warnings = _warnings(worse)
     assert len(warnings) == 2 and "EMS gets worse" in warnings[0] and "-15.0 %" in warnings[0]
     assert _warnings(_decision(0.1, math.nan, good)) == []
-
-
-def test_a_refused_candidate_is_unexplained_at_its_place_and_says_why() -> None:
-    pb = SimpleNamespace()
-    bad = Verdict("cross-validation", "5 interleaved folds", True, -0.3, 100.0, 130.0)
-    f = _refused(pb, _decision(0.1, 0.05, bad))  # type: ignore[arg-type]
-    assert f["effect"] == "unexplained" and "held-out fit worse (-30.0 %)" in f["explanation"]
-    assert f["location"]["position_m"] == [0.1 - 0.02, 0.1 + 0.02]
-    assert f["rejected_candidate"]["effect"] == "position_bump"
 
 
 def test_a_held_out_cost_moves_no_parameter_the_spec_fixes(twin_problem) -> None:

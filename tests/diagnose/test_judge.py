@@ -147,14 +147,14 @@ def stribeck_diagnoses(paper_config: Config) -> dict[str, object]:
 @pytest.mark.slow  # two whole diagnoses: every candidate's output-error fit compiled
 def test_a_hidden_stribeck_drop_is_named_first_and_holds_out(stribeck_diagnoses) -> None:
     diag = stribeck_diagnoses["drop"]
-    assert diag.findings and diag.findings[0]["effect"] == "stribeck"
+    assert diag.findings and diag.findings[0].effect == "stribeck"
     f = diag.findings[0]
-    assert any(v["judged"] and v["gain"] > 0 for v in f["heldout"])
+    assert any(v.judged and v.gain > 0 for v in f.heldout)
     # the record's equation-error EMS gets worse with the output-error refit (the filter's
     # bias at the drop): reported beside the finding as a warning, never a veto
-    worse = any("EMS gets worse" in w for w in f["warnings"])
-    assert worse == (f["record_ems_gain"] < 0)
-    assert f["p_value"] < 0.01 / len(diag.steps[0].fits) and f["delta_bic"] > 10
+    worse = any("EMS gets worse" in w for w in f.warnings)
+    assert worse == (f.evidence["record_ems_gain"] < 0)
+    assert f.p_value < 0.01 / len(diag.steps[0].fits) and f.delta_bic > 10
 
 
 @pytest.mark.slow

@@ -59,6 +59,6 @@ def test_unexplained_names_the_segment_that_misfits_most() -> None:
     )
     model = SimpleNamespace(problem=pb, fit=fit, n_free=1)
     f = _unexplained(model, 1e-9, 50)  # type: ignore[arg-type]
-    assert f["effect"] == "unexplained" and f["p_value"] == 1e-9
-    assert f["location"]["time_s"] == [pytest.approx(0.15), pytest.approx(0.199)]
-    assert f["delta_bic"] > 0  # the excess over the residual degrees of freedom
+    assert f.effect == "unexplained" and f.p_value == 1e-9
+    assert f.location["time_s"] == [pytest.approx(0.15), pytest.approx(0.199)]
+    assert f.delta_bic > 0  # the excess over the residual degrees of freedom

@@ -20,6 +20,7 @@ from fricjax.diagnose.select import (
     Rule,
     Step,
     Verdict,
+    refused,
     refused_by_step,
     select,
     vuong_t,
@@ -197,3 +198,19 @@ def test_vuong_s_t_is_the_mean_block_difference_over_its_standard_error() -> Non
     # two fits that are the same: no preference, never an infinite one
     assert vuong_t(np.zeros(6)) == (0.0, 5)
     assert vuong_t(np.full(4, 2.0))[0] == math.inf
+
+
+def test_a_refused_candidate_is_unexplained_at_its_place_and_says_why() -> None:
+    bad = Verdict("cross-validation", "5 interleaved folds", True, -0.3, 100.0, 130.0)
+    best = Decision(Fit("position_bump", 1e-9, 40.0), (bad,))
+    rivals = [_decision("impact", 30.0, False), _decision("friction_drift", 20.0, False)]
+    place = {"position_m": [0.08, 0.12]}
+    f = refused(best, rivals, place, {"effect": "position_bump"})
+    assert f.effect == "unexplained" and not f.named and f.params == {}
+    assert "held-out fit worse (-30.0 %)" in f.explanation
+    assert "impact and friction_drift fitted it too and were refused" in f.explanation
+    assert f.location == place and f.delta_bic == 40.0
+    doc = f.as_json()
+    assert doc["rejected_candidate"]["effect"] == "position_bump"
+    assert [r["effect"] for r in doc["rejected_alternatives"]] == ["impact", "friction_drift"]
+    assert "alternatives" not in doc and "heldout" not in doc  # not a named finding
