@@ -107,7 +107,7 @@ from fricjax.diagnose.select import (
     select,
     vuong_t,
 )
-from fricjax.diagnose.stages import Clock, OnStage
+from fricjax.diagnose.stages import TIME_LIMIT_S, Clock, OnStage
 from fricjax.errors import FricjaxError
 from fricjax.identify import IdentifySettings
 from fricjax.joint import (
@@ -127,7 +127,6 @@ from fricjax.residual_noise import stacked_noise
 __all__ = [
     "DRIFT",
     "MAX_STARTS",
-    "STAGE_LIMITS",
     "TIME_LIMIT",
     "AcrossDiagnosis",
     "JointCandidateFit",
@@ -144,10 +143,10 @@ __all__ = [
 #: Shape-parameter starts per candidate (evenly spaced points of its grid, all recordings'
 #: grids merged): each is one Levenberg–Marquardt start of the vmapped polish.
 MAX_STARTS = 16
-#: Seconds per stage (and in all) by default: an ordinary diagnosis of a few 1–30 s
-#: recordings stays well inside them on two shared cores; a limit acts only when hit.
-STAGE_LIMITS: dict[str, float] = {"candidates": 480.0, "heldout": 300.0}
-TIME_LIMIT = 900.0
+#: Seconds in all by default (no stage limit by default, as for one recording): five times
+#: one recording's default, as every candidate is fitted on every recording; a user who
+#: waits longer sets ``--time-limit`` (``inf``: none).
+TIME_LIMIT = 5 * TIME_LIMIT_S
 #: A contrast is determined when its component along A's null directions is below this
 #: fraction of its norm (in the column-scaled coordinates of the SVD).
 _NULL_TOL = 1e-6
@@ -163,15 +162,13 @@ def across_clock(
     on_stage: OnStage | None = None,
     stop: threading.Event | None = None,
 ) -> Clock:
-    """The clock of a diagnosis across recordings: :data:`STAGE_LIMITS` and
-    :data:`TIME_LIMIT` by default, a tighter ``stage_limits`` entry (``[diagnose]``) or
-    ``total`` where given."""
-    limits = {
-        k: min(STAGE_LIMITS.get(k, math.inf), (stage_limits or {}).get(k, math.inf))
-        for k in (*STAGE_LIMITS, *(stage_limits or {}))
-    }
+    """The clock of a diagnosis across recordings: ``stage_limits`` (``[diagnose]``, none
+    by default) and ``total`` seconds in all (default :data:`TIME_LIMIT`)."""
     return Clock(
-        limits=limits, total=TIME_LIMIT if total is None else total, on_stage=on_stage, stop=stop
+        limits=dict(stage_limits or {}),
+        total=TIME_LIMIT if total is None else total,
+        on_stage=on_stage,
+        stop=stop,
     )
 
 
@@ -615,7 +612,7 @@ class LeaveOneOut:
     def judge(self, before: JointModel, after: JointModel, place: Mapping[str, Any]) -> Verdict:
         check = "leave one recording out"
         names = [p.name for p in before.problems]
-        on = f"each of the {len(names)} recordings left out in turn"
+        on = f"{len(names)} recordings, each left out in turn"
         if len(after.per) > len(before.per):
             return Verdict(
                 check,

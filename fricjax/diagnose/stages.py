@@ -171,9 +171,14 @@ class Clock:
         )
         if self.interrupted:
             return f"Interrupted (Ctrl-C) at {self.skipped[0].at_s:.0f} s: incomplete, {untested}."
+        first = self.skipped[0]
+        if first.limit in self.limits:  # a stage's own limit ([diagnose.stage_limits])
+            which, longer = f"{self.limits[first.limit]:g} s for {first.limit}", "stage limit"
+        else:
+            which, longer = f"{self.total:g} s in all", "--time-limit"
         return (
-            f"Time limit ({self.total:g} s in all) hit at {self.skipped[0].at_s:.0f} s: "
-            f"incomplete, {untested}; a longer --time-limit tests them."
+            f"Time limit ({which}) hit at {first.at_s:.0f} s: incomplete, {untested}; a "
+            f"longer {longer} tests them."
         )
 
     def not_tested(self) -> list[str]:
