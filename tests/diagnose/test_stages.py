@@ -155,6 +155,13 @@ def test_a_stop_request_acts_as_every_limit_hit_and_says_so_first() -> None:
         timed.untested("candidates", "stribeck")
     assert timed.headline().startswith("Time limit (5 s in all)") and "stribeck" in timed.headline()
     assert Clock(now=now).headline() == ""
+    # a stage's own limit is named as such, with what lifts it
+    staged = Clock(limits={"candidates": 2.0}, total=100.0, now=now)
+    with staged.stage("candidates"):
+        now.t += 3.0
+        staged.untested("candidates", "impact")
+    line = staged.headline()
+    assert line.startswith("Time limit (2 s for candidates)") and "longer stage limit" in line
 
 
 def test_ctrl_c_stops_the_work_in_flight_and_keeps_what_it_returns() -> None:
