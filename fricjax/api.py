@@ -24,6 +24,8 @@ from fricjax.validate import read_params
 if TYPE_CHECKING:
     from collections.abc import Callable
 
+    from fricjax.diagnose.across import AcrossDiagnosis
+    from fricjax.diagnose.run import Diagnosis
     from fricjax.diagnose.stages import StageEvent
     from fricjax.simulation import SimulationReport
 
@@ -497,8 +499,11 @@ def diagnose_recording(
     overrides: dict[str, Any] | None = None,
     on_stage: Callable[[StageEvent], None] | None = None,
     stop: threading.Event | None = None,
-) -> tuple[Any, dict[str, Path]]:
-    """``fricjax diagnose``: base fit, catalogue scored and refitted; writes DIR/diagnosis.json.
+) -> tuple[Diagnosis, dict[str, Path]]:
+    """``fricjax diagnose``: base fit, every catalogue term refitted, the one rule; writes
+    DIR/diagnosis.json, models.h5, report.md and report.html. The diagnosis' ``findings``
+    are :class:`~fricjax.diagnose.select.Finding` s (``as_json()``: the diagnosis.json
+    entry), its ``steps`` the typed forward-selection steps.
 
     ``overrides``: ``[diagnose]`` keys set from the command line (``time_limit`` among
     them); ``on_stage``: called with each :class:`~fricjax.diagnose.stages.StageEvent`
@@ -542,7 +547,7 @@ def diagnose_recordings(
     overrides: dict[str, Any] | None = None,
     effects: list[str] | None = None,
     on_stage: Callable[[StageEvent], None] | None = None,
-) -> tuple[Any, dict[str, Path]]:
+) -> tuple[AcrossDiagnosis, dict[str, Path]]:
     """``fricjax diagnose REC1 REC2 ...``: the diagnosis across recordings of one plant on
     their joint fit (:mod:`fricjax.diagnose.across`: shared catalogue terms judged by
     leaving one recording out, run-to-run drift, in the one forward selection of
