@@ -163,7 +163,8 @@ class Design(NamedTuple):
     tests of the same duration and peak input (:func:`standard_inputs`), by name, their
     ``separation`` (D's least off-diagonal value) and ``limit_violation``, and standard_u
     their profiles [n]; limits, plan;
-    violation: the largest relative excess of a limit by any model [1]."""
+    violation: the largest relative excess of a limit by any model [1];
+    origin: :data:`DESIGNED`, or the standard test that separated best (returned as it is)."""
 
     t: np.ndarray
     u: np.ndarray
@@ -179,6 +180,7 @@ class Design(NamedTuple):
     limits: Limits
     plan: Plan
     violation: float
+    origin: str = "designed"
 
     @property
     def separation(self) -> float:
@@ -203,6 +205,7 @@ class Design(NamedTuple):
             "rivals": list(self.rivals),
             "models": list(self.models),
             **_about_the_test(self.column, self.plan, self.sigma_x, self.limits, self.violation),
+            "origin": self.origin,
             "separation": self.separation,
             "pairs": pairs,
             "standard_tests": self.standard,
@@ -580,7 +583,7 @@ def design(
         d, _, violation = assess(u)
         return _min_off_diagonal(d), violation
 
-    best, standard = _optimise(loss, score, problem, plan, limits, settings)
+    best, origin, standard = _optimise(loss, score, problem, plan, limits, settings)
     d, xs, violation = assess(best)
     cost = np.array([r.cost for r in rivals])
     k = np.array([r.k for r in rivals], dtype=np.float64)
@@ -605,7 +608,13 @@ def design(
         limits=limits,
         plan=plan,
         violation=violation,
+        origin=origin,
     )
+
+
+#: Where a returned test came from when the optimiser's profile won (else a standard test's
+#: name, :func:`standard_inputs`).
+DESIGNED = "designed"
 
 
 def _optimise(
@@ -615,12 +624,13 @@ def _optimise(
     plan: Plan,
     limits: Limits,
     settings: DesignSettings,
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+) -> tuple[np.ndarray, str, dict[str, np.ndarray]]:
     """Adam on ``loss`` of the profile's coefficients from ``settings.starts`` lanes in one
-    vmapped batch; returns the profile [n] with the best ``score`` (higher is better) among
-    those within the limits (``score``'s second value ≤ :data:`LIMIT_SLACK`), and the
-    standard inputs (:func:`standard_inputs`, and the chirp scaled down to keep the limits,
-    :func:`_held`), whose projections are the first starts."""
+    vmapped batch; returns the input [n] with the best ``score`` (higher is better) among
+    the optimised profiles and the standard inputs within the limits (``score``'s second
+    value ≤ :data:`LIMIT_SLACK`), where it came from (:data:`DESIGNED` or a standard
+    test's name), and the standard inputs (:func:`standard_inputs`, and the chirp scaled
+    down to keep the limits, :func:`_held`), whose projections are the first starts."""
     grad = jax.value_and_grad(loss)
 
     def run(c0: Array) -> Array:
@@ -643,16 +653,21 @@ def _optimise(
     coefs = jax.jit(jax.vmap(run))(starts)
     us = np.asarray(jax.vmap(lambda c: profile(c, plan, limits))(coefs))
     found = []
-    for u in us:
+    # the standard tests themselves compete: a profile of M harmonics cannot hold a chirp
+    # whose band is wider, and the test handed to the user must never be worse than one
+    # it is compared with
+    candidates = [*((DESIGNED, u) for u in us), *standard.items()]
+    for origin, u in candidates:
         value, violation = score(u)
         if violation <= LIMIT_SLACK and math.isfinite(value):
-            found.append((value, u))
+            found.append((value, origin, u))
     if not found:
         raise FricjaxError(
             f"{where('design', 'limits')}: no start kept every model within the travel and "
             "speed limits; widen --limits or shorten --duration"
         )
-    return max(found, key=lambda a: a[0])[1], standard
+    _, origin, best = max(found, key=lambda a: a[0])
+    return best, origin, standard
 
 
 def _held(
@@ -741,7 +756,7 @@ class PrecisionDesign(NamedTuple):
     the focus' uncertainty ellipsoid after, relative to now, as the geometric mean of its
     axes (det ratio^(1/2k), the D_s criterion in words); standard: for the standard tests
     (:func:`standard_inputs`), by name, ``sigma_after`` [k], ``shrink`` and
-    ``limit_violation``; limits, plan; violation [1]."""
+    ``limit_violation``; limits, plan; violation [1]; origin: as :attr:`Design.origin`."""
 
     t: np.ndarray
     u: np.ndarray
@@ -759,11 +774,13 @@ class PrecisionDesign(NamedTuple):
     limits: Limits
     plan: Plan
     violation: float
+    origin: str = "designed"
 
     def as_json(self) -> dict:
         return {
             "for": "identify",
             "model": self.model,
+            "origin": self.origin,
             **_about_the_test(self.column, self.plan, self.sigma_x, self.limits, self.violation),
             "shrink": self.shrink,
             "focus": list(self.focus),
@@ -850,7 +867,7 @@ def design_precision(
         _, logdet, _, violation = judge(jnp.asarray(u))
         return -float(logdet), float(violation)
 
-    best, standard = _optimise(loss, score, problem, plan, limits, settings)
+    best, origin, standard = _optimise(loss, score, problem, plan, limits, settings)
     after, logdet, xs, violation = judge(jnp.asarray(best))
     before = np.sqrt(np.diag(model.cov))
     now = float(_focus_logdet(jnp.zeros((1, model.k)), scaled, idx))
@@ -879,4 +896,5 @@ def design_precision(
         limits=limits,
         plan=plan,
         violation=float(violation),
+        origin=origin,
     )

@@ -16,6 +16,7 @@ from fricjax import api
 from fricjax.cli import main
 from fricjax.data.recording import Recording
 from fricjax.design import (
+    DESIGNED,
     DesignSettings,
     Limits,
     Rival,
@@ -30,7 +31,9 @@ from fricjax.design import (
     record_limits,
     responses,
     scale_rival,
+    standard_inputs,
 )
+from fricjax.design import _optimise as optimise
 from fricjax.diagnose.catalogue import candidate
 from fricjax.errors import FricjaxError
 from fricjax.model.simulate import simulate
@@ -124,6 +127,26 @@ def test_the_profile_keeps_the_peak_input_and_projection_inverts_it(short_axis) 
     u = np.asarray(profile(jnp.asarray(c), plan, limits))
     assert np.max(np.abs(u - limits.u_mid)) < 0.98 * limits.u_peak
     np.testing.assert_allclose(project(u, plan, limits), c, atol=1e-9)
+
+
+def test_a_standard_test_that_separates_better_is_the_test_returned(short_axis) -> None:
+    # a criterion that only a chirp satisfies (its distance from the chirp) and a loss that
+    # pulls every profile to a constant: no optimised profile can reach the chirp, so the
+    # test handed back must be the chirp itself, said so, never a worse profile
+    plan = plan_for(short_axis)
+    limits = record_limits(short_axis)
+    chirp = standard_inputs(short_axis, plan, limits)["chirp"]
+
+    def score(u: np.ndarray) -> tuple[float, float]:
+        return -float(np.sum((u - chirp) ** 2)), 0.0
+
+    settings = DesignSettings(starts=4, steps=3)
+    best, origin, standard = optimise(
+        lambda c: jnp.sum(c**2), score, short_axis, plan, limits, settings
+    )
+    assert origin in ("chirp", "chirp within limits") and origin != DESIGNED
+    np.testing.assert_allclose(best, chirp)
+    assert set(standard) == {"chirp", "record's input", "chirp within limits"}
 
 
 def test_the_default_limits_are_what_the_record_did(short_axis) -> None:

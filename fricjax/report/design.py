@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fricjax.design import Design, PrecisionDesign
+from fricjax.design import DESIGNED, Design, PrecisionDesign
 from fricjax.io.atomic import write_text_atomic
 from fricjax.report.plots import plt, save
 from fricjax.report.tables import fmt
@@ -70,12 +70,20 @@ def plot_design(d: Design, path: Path) -> Path:
     return save(fig, path)
 
 
+def _headline(origin: str) -> str:
+    """ "Designed test", or the standard test that did better than every optimised profile
+    (it is then the test written)."""
+    if origin == DESIGNED:
+        return "Designed test"
+    return f"Best test found: the standard {origin!r} (no optimised profile did better)"
+
+
 def format_design(d: Design) -> str:
     """The summary a test engineer reads: the pairs' expected evidence, the standard
     tests' beside it, and the limits kept."""
     lines = [
-        f"Designed test: {d.plan.duration:g} s at {1 / d.plan.dt:g} Hz, input {d.column} "
-        f"within {fmt(d.limits.u_mid)} ± {fmt(d.limits.u_peak)}, "
+        f"{_headline(d.origin)}: {d.plan.duration:g} s at {1 / d.plan.dt:g} Hz, input "
+        f"{d.column} within {fmt(d.limits.u_mid)} ± {fmt(d.limits.u_peak)}, "
         f"{d.plan.harmonics} harmonics of {1 / d.plan.duration:.3g} Hz.",
         f"Models to separate (σ_x = {d.sigma_x:.3g} m):",
         *(f"  {name:>22}: {model}" for name, model in zip(d.rivals, d.models, strict=True)),
@@ -128,8 +136,8 @@ def format_precision(d: PrecisionDesign) -> str:
     """Each parameter's σ now, after the designed test, and after the standard tests."""
     names = list(d.standard)
     lines = [
-        f"Designed test: {d.plan.duration:g} s at {1 / d.plan.dt:g} Hz, input {d.column} "
-        f"within {fmt(d.limits.u_mid)} ± {fmt(d.limits.u_peak)}, "
+        f"{_headline(d.origin)}: {d.plan.duration:g} s at {1 / d.plan.dt:g} Hz, input "
+        f"{d.column} within {fmt(d.limits.u_mid)} ± {fmt(d.limits.u_peak)}, "
         f"{d.plan.harmonics} harmonics of {1 / d.plan.duration:.3g} Hz; "
         f"σ_x = {d.sigma_x:.3g} m.",
         f"To determine: {', '.join(d.focus)} (D_s-optimal; σ expected from the record and "
