@@ -3,7 +3,8 @@
 Every paragraph or bullet of those pages that links a results file under
 ``benchmarks/results/`` may quote only figures that file holds: a decimal number must be
 one of the file's numbers at the precision quoted, a count ``a/b`` must appear as ``a/b``,
-``a of b`` or as its percentage. A page updated by hand after a rerun therefore fails here
+``a of b`` or as its percentage; a table or list that such a paragraph introduces (it ends
+with a colon) quotes the same files. A page updated by hand after a rerun therefore fails here
 until its figures match the file the rerun wrote; a figure no results file holds cannot
 hide behind a link. ``docs/history*.md`` is exempt: it records past figures on purpose.
 """
@@ -51,8 +52,12 @@ def test_holds_compares_at_the_quoted_precision() -> None:
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_every_linked_figure_is_in_its_results_file(page: Path) -> None:
     wrong = []
+    introduced: list[str] = []
     for block in _blocks(page.read_text(encoding="utf-8")):
-        links = _LINK.findall(block)
+        # a table or list introduced by a paragraph that links results ("…, results):")
+        # quotes that paragraph's results
+        links = _LINK.findall(block) or (introduced if block.lstrip()[:1] in "|-" else [])
+        introduced = links if block.rstrip().endswith(":") else []
         if not links:
             continue
         files = [(page.parent / link).resolve() for link in links]
