@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "concealed"))
@@ -252,6 +253,9 @@ def main() -> None:
         if sum("designed" in r for r in rows) >= args.limit:
             break
         row = one_case(path, args.out, args.time_limit)
+        # each case compiles programs of its own shapes; kept, they exhaust the memory
+        # within a few cases ("LLVM compilation error: Cannot allocate memory")
+        jax.clear_caches()
         if row is not None:
             rows.append(row)
             print(json.dumps(row), flush=True)
