@@ -607,7 +607,7 @@ class LeaveOneOut:
     (every candidate of a step is judged against the same one)."""
 
     sigma: tuple[float, ...]
-    cache: dict[int, dict[int, tuple[JointFit, bool]]] = field(default_factory=dict)
+    cache: dict[JointFit, dict[int, tuple[JointFit, bool]]] = field(default_factory=dict)
 
     def judge(self, before: JointModel, after: JointModel, place: Mapping[str, Any]) -> Verdict:
         check = "leave one recording out"
@@ -622,7 +622,9 @@ class LeaveOneOut:
                 "refitted on it, which always gains",
             )
         per, sigma = before.per, self.sigma
-        folds = self.cache.setdefault(id(before.fit), {})
+        # keyed by the fit itself (hashed by identity), which the cache keeps alive: an id()
+        # could be reused by a later fit once the first is collected
+        folds = self.cache.setdefault(before.fit, {})
         parts = []
         for k in range(len(names)):
             keep = [j for j in range(len(names)) if j != k]
