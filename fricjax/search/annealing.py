@@ -19,9 +19,8 @@ What lives here:
   :mod:`fricjax.search.csaa`, :mod:`~fricjax.search.dsaa` and :mod:`~fricjax.search.rdsa`
   provide and :mod:`fricjax.search.chains` runs.
 
-Every chain state is a NamedTuple with at least the fields ``x [d]``, ``cost []``,
-``best_x [d]``, ``best_cost []``, ``key``, ``n_accepted []``, ``n_proposed []`` and
-``n_evals []``; the algorithm modules add their own fields.
+Every chain is one :class:`ChainState` (built by :func:`start`); what an algorithm carries
+of its own (a step scale, a code, a failure count) is its ``adapt`` field.
 """
 
 from __future__ import annotations
@@ -305,7 +304,41 @@ def greedy_accept(cost: Float[ArrayLike, ""], cost_new: Float[ArrayLike, ""]) ->
     return jnp.isfinite(cost_new) & (cost_new < finite_or_inf(cost))
 
 
-def commit(state: Any, accepted: Bool[Array, ""], x_new: Float[Array, " d"], cost_new: Any) -> Any:
+class ChainState(NamedTuple):
+    """State of one chain of any algorithm (shapes without the chain axis).
+
+    ``x [d]``/``cost []``: current point and its cost (+∞ if it was not finite);
+    ``best_x [d]``/``best_cost []``: best point visited; ``key``: PRNG key;
+    ``n_accepted``, ``n_proposed``, ``n_evals``: cumulative counters; ``adapt``: what the
+    algorithm itself carries (CSAA's Gaussian scale ``[]``, DSAA's code ``[d, n]``,
+    RDSA's :class:`fricjax.search.rdsa.Step`).
+    """
+
+    x: Float[Array, " d"]
+    cost: Float[Array, ""]
+    best_x: Float[Array, " d"]
+    best_cost: Float[Array, ""]
+    key: Array
+    n_accepted: Int[Array, ""]
+    n_proposed: Int[Array, ""]
+    n_evals: Int[Array, ""]
+    adapt: Any
+
+
+def start(
+    key: Array, x0: Float[ArrayLike, " d"], cost0: Float[ArrayLike, ""], adapt: Any
+) -> ChainState:
+    """A chain at ``x0`` whose cost ``cost0 = f(x0)`` the caller evaluated (counted as one
+    evaluation)."""
+    x0 = jnp.asarray(x0)
+    cost0 = finite_or_inf(cost0)
+    zero = jnp.zeros((), dtype=int)
+    return ChainState(x0, cost0, x0, cost0, key, zero, zero, zero + 1, adapt)
+
+
+def commit(
+    state: ChainState, accepted: Bool[Array, ""], x_new: Float[Array, " d"], cost_new: Any
+) -> ChainState:
     """Move a chain state to the candidate if ``accepted``; update the best point and the
     counters (one proposal, one cost evaluation)."""
     better = accepted & (cost_new < state.best_cost)

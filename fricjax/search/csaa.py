@@ -17,50 +17,29 @@ Both accept with the Metropolis rule of :func:`fricjax.search.annealing.metropol
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Float
 
 from fricjax.search.annealing import (
     Algorithm,
     AnnealSettings,
+    ChainState,
     CostFn,
     commit,
     draw,
-    finite_or_inf,
     keep_point,
     metropolis_rule,
     no_adaptation,
     normal_from_uniform,
     random_mask,
     reflect,
+    start,
 )
 
 # The adapted Gaussian scale stays within these fractions of the parameter ranges: below
 # 1e-12 steps vanish in float64 rounding, above 1 the reflection makes it a uniform draw.
 SCALE_MIN = 1e-12
 SCALE_MAX = 1.0
-
-
-class CSAAState(NamedTuple):
-    """State of one CSAA chain (shapes without the chain axis).
-
-    ``x [d]``/``cost []``: current point and its cost (+∞ if it was not finite);
-    ``best_x [d]``/``best_cost []``: best point visited; ``key``: PRNG key;
-    ``scale []``: Gaussian step as a fraction of the ranges (unused by eq. 12);
-    ``n_accepted``, ``n_proposed``, ``n_evals``: cumulative counters.
-    """
-
-    x: Float[Array, " d"]
-    cost: Float[Array, ""]
-    best_x: Float[Array, " d"]
-    best_cost: Float[Array, ""]
-    key: Array
-    scale: Float[Array, ""]
-    n_accepted: Int[Array, ""]
-    n_proposed: Int[Array, ""]
-    n_evals: Int[Array, ""]
 
 
 def init(
@@ -70,23 +49,11 @@ def init(
     lower: Float[ArrayLike, " d"],
     upper: Float[ArrayLike, " d"],
     settings: AnnealSettings,
-) -> CSAAState:
-    """Chain state at ``x0`` whose cost ``cost0 = f(x0)`` was evaluated by the caller
-    (counted as one evaluation)."""
+) -> ChainState:
+    """Chain state at ``x0`` with ``cost0 = f(x0)``; ``adapt`` is the Gaussian step as a
+    fraction of the ranges (``gauss_scale0``; unused by eq. 12)."""
     x0 = jnp.asarray(x0)
-    cost0 = finite_or_inf(cost0)
-    zero = jnp.zeros((), dtype=int)
-    return CSAAState(
-        x=x0,
-        cost=cost0,
-        best_x=x0,
-        best_cost=cost0,
-        key=key,
-        scale=jnp.asarray(settings.gauss_scale0, dtype=x0.dtype),
-        n_accepted=zero,
-        n_proposed=zero,
-        n_evals=zero + 1,
-    )
+    return start(key, x0, cost0, jnp.asarray(settings.gauss_scale0, dtype=x0.dtype))
 
 
 def redraw(
@@ -138,13 +105,13 @@ def _n_choice(d: int, k: int) -> int:
 
 
 def step(
-    state: CSAAState,
+    state: ChainState,
     cost_fn: CostFn,
     temperature: Float[ArrayLike, ""],
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
     settings: AnnealSettings,
-) -> CSAAState:
+) -> ChainState:
     """One eq. 12 proposal (``settings.csaa_k`` parameters) and Metropolis decision."""
     n = state.x.shape[0] + _n_choice(state.x.shape[0], settings.csaa_k)
     key, u = draw(state.key, n + 1, state.x.dtype)
@@ -155,26 +122,26 @@ def step(
 
 
 def gauss_step(
-    state: CSAAState,
+    state: ChainState,
     cost_fn: CostFn,
     temperature: Float[ArrayLike, ""],
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
     settings: AnnealSettings,
-) -> CSAAState:
+) -> ChainState:
     """One Gaussian proposal at the chain's current scale and Metropolis decision."""
     d = state.x.shape[0]
     n = d + (0 if settings.gauss_k == 0 else _n_choice(d, settings.gauss_k))
     key, u = draw(state.key, n + 1, state.x.dtype)
-    x_new = gauss_proposal(u[:n], state.x, lower, upper, state.scale, settings.gauss_k)
+    x_new = gauss_proposal(u[:n], state.x, lower, upper, state.adapt, settings.gauss_k)
     cost_new = cost_fn(x_new)
     accepted = metropolis_rule(u[n], state.cost, cost_new, temperature)
     return commit(state._replace(key=key), accepted, x_new, cost_new)
 
 
 def adapt_scale(
-    state: CSAAState, acceptance: Float[ArrayLike, ""], settings: AnnealSettings
-) -> CSAAState:
+    state: ChainState, acceptance: Float[ArrayLike, ""], settings: AnnealSettings
+) -> ChainState:
     """End of level: ``s ← clip(s·exp(γ·(acceptance − target)), 1e-12, 1)``.
 
     A chain whose current cost is not finite (it started in a forbidden region) counts as
@@ -183,8 +150,8 @@ def adapt_scale(
     """
     acceptance = jnp.where(jnp.isfinite(state.cost), acceptance, 1.0)
     factor = jnp.exp(settings.gauss_gamma * (acceptance - settings.gauss_target))
-    scale = jnp.clip(state.scale * factor, SCALE_MIN, SCALE_MAX)
-    return state._replace(scale=scale.astype(state.scale.dtype))
+    scale = jnp.clip(state.adapt * factor, SCALE_MIN, SCALE_MAX)
+    return state._replace(adapt=scale.astype(state.adapt.dtype))
 
 
 #: Eq. 12 redraw of ``csaa_k`` parameters (method ``"csaa"``).

@@ -25,7 +25,6 @@ its best chain ending up to 0.3 of 6 (≈ 50 grid steps) away. Prefer ``"dsaa-gr
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
 
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
@@ -33,32 +32,15 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from fricjax.search.annealing import (
     Algorithm,
     AnnealSettings,
+    ChainState,
     CostFn,
     commit,
     draw,
-    finite_or_inf,
     metropolis_rule,
     no_adaptation,
     random_subset,
+    start,
 )
-
-
-class DSAAState(NamedTuple):
-    """State of one DSAA chain (shapes without the chain axis).
-
-    ``bits [d, n]``: the code of ``x`` (most significant bit first); ``x [d]`` is its
-    decoded value. Other fields as in :class:`fricjax.search.csaa.CSAAState`.
-    """
-
-    x: Float[Array, " d"]
-    cost: Float[Array, ""]
-    best_x: Float[Array, " d"]
-    best_cost: Float[Array, ""]
-    key: Array
-    bits: Bool[Array, "d n"]
-    n_accepted: Int[Array, ""]
-    n_proposed: Int[Array, ""]
-    n_evals: Int[Array, ""]
 
 
 def grid_step(
@@ -171,44 +153,32 @@ def init(
     upper: Float[ArrayLike, " d"],
     settings: AnnealSettings,
     gray: bool = False,
-) -> DSAAState:
-    """Chain state at the grid point nearest ``x0``; ``cost0`` must be the cost of that
-    grid point (``x0`` already snapped with :func:`snap`, as ``run_chains`` does)."""
+) -> ChainState:
+    """Chain state at the grid point nearest ``x0``, its code ``[d, n]`` (most significant
+    bit first) as ``adapt``; ``cost0`` must be the cost of that grid point (``x0`` already
+    snapped with :func:`snap`, as ``run_chains`` does)."""
     bits = encode(x0, lower, upper, settings.n_bits, gray)
-    x = decode(bits, lower, upper, gray)
-    cost0 = finite_or_inf(cost0)
-    zero = jnp.zeros((), dtype=int)
-    return DSAAState(
-        x=x,
-        cost=cost0,
-        best_x=x,
-        best_cost=cost0,
-        key=key,
-        bits=bits,
-        n_accepted=zero,
-        n_proposed=zero,
-        n_evals=zero + 1,
-    )
+    return start(key, decode(bits, lower, upper, gray), cost0, bits)
 
 
 def step(
-    state: DSAAState,
+    state: ChainState,
     cost_fn: CostFn,
     temperature: Float[ArrayLike, ""],
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
     settings: AnnealSettings,
     gray: bool = False,
-) -> DSAAState:
+) -> ChainState:
     """One bit-flip proposal (``settings.dsaa_k``), decode, Metropolis decision."""
-    n = min(settings.dsaa_k, state.bits.size) + 1
+    n = min(settings.dsaa_k, state.adapt.size) + 1
     key, u = draw(state.key, n + 1, state.x.dtype)
-    bits_new = flip_bits(u[:n], state.bits, settings.dsaa_k)
+    bits_new = flip_bits(u[:n], state.adapt, settings.dsaa_k)
     x_new = decode(bits_new, lower, upper, gray)
     cost_new = cost_fn(x_new)
     accepted = metropolis_rule(u[n], state.cost, cost_new, temperature)
     state = commit(state._replace(key=key), accepted, x_new, cost_new)
-    return state._replace(bits=jnp.where(accepted, bits_new, state.bits))
+    return state._replace(adapt=jnp.where(accepted, bits_new, state.adapt))
 
 
 #: Plain binary code (method ``"dsaa"``).

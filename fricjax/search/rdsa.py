@@ -23,15 +23,16 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from fricjax.search.annealing import (
     Algorithm,
     AnnealSettings,
+    ChainState,
     CostFn,
     commit,
     draw,
-    finite_or_inf,
     greedy_accept,
     keep_point,
     no_adaptation,
     normal_from_uniform,
     reflect,
+    start,
 )
 
 # α stays within these fractions of the ranges: below 1e-12 a step is lost in float64
@@ -40,24 +41,13 @@ ALPHA_MIN = 1e-12
 ALPHA_MAX = 1.0
 
 
-class RDSAState(NamedTuple):
-    """State of one RDSA chain (shapes without the chain axis).
+class Step(NamedTuple):
+    """RDSA's own chain state: ``alpha []``, the step factor (a fraction of the ranges),
+    and ``n_fail []``, the consecutive failures since the last success or shrink. The
+    chain's ``x`` is always its best point."""
 
-    ``alpha []``: step factor (fraction of the ranges); ``n_fail []``: consecutive
-    failures since the last success or shrink. ``x`` is always the best point. Other
-    fields as in :class:`fricjax.search.csaa.CSAAState`.
-    """
-
-    x: Float[Array, " d"]
-    cost: Float[Array, ""]
-    best_x: Float[Array, " d"]
-    best_cost: Float[Array, ""]
-    key: Array
     alpha: Float[Array, ""]
     n_fail: Int[Array, ""]
-    n_accepted: Int[Array, ""]
-    n_proposed: Int[Array, ""]
-    n_evals: Int[Array, ""]
 
 
 def init(
@@ -67,23 +57,11 @@ def init(
     lower: Float[ArrayLike, " d"],
     upper: Float[ArrayLike, " d"],
     settings: AnnealSettings,
-) -> RDSAState:
+) -> ChainState:
     """Chain state at ``x0`` with ``cost0 = f(x0)`` and ``α = rdsa_alpha0``."""
     x0 = jnp.asarray(x0)
-    cost0 = finite_or_inf(cost0)
-    zero = jnp.zeros((), dtype=int)
-    return RDSAState(
-        x=x0,
-        cost=cost0,
-        best_x=x0,
-        best_cost=cost0,
-        key=key,
-        alpha=jnp.asarray(settings.rdsa_alpha0, dtype=x0.dtype),
-        n_fail=zero,
-        n_accepted=zero,
-        n_proposed=zero,
-        n_evals=zero + 1,
-    )
+    alpha = jnp.asarray(settings.rdsa_alpha0, dtype=x0.dtype)
+    return start(key, x0, cost0, Step(alpha, jnp.zeros((), dtype=int)))
 
 
 def direction(u: Float[ArrayLike, " d"]) -> Float[Array, " d"]:
@@ -94,13 +72,13 @@ def direction(u: Float[ArrayLike, " d"]) -> Float[Array, " d"]:
 
 
 def step(
-    state: RDSAState,
+    state: ChainState,
     cost_fn: CostFn,
     temperature: Float[ArrayLike, ""],
     lower: Float[Array, " d"],
     upper: Float[Array, " d"],
     settings: AnnealSettings,
-) -> RDSAState:
+) -> ChainState:
     """One eq. 6 trial ``reflect(x + α·(b − a)·s)``, greedy acceptance, α update.
 
     ``temperature`` is ignored (same signature as the annealing steps).
@@ -108,24 +86,23 @@ def step(
     del temperature
     key, u = draw(state.key, state.x.shape[0], state.x.dtype)
     s = direction(u)
-    x_new = reflect(state.x + state.alpha * (upper - lower) * s, lower, upper)
+    alpha0, n_fail0 = state.adapt
+    x_new = reflect(state.x + alpha0 * (upper - lower) * s, lower, upper)
     cost_new = cost_fn(x_new)
     accepted = greedy_accept(state.cost, cost_new)
-    n_fail = jnp.where(accepted, 0, state.n_fail + 1)
+    n_fail = jnp.where(accepted, 0, n_fail0 + 1)
     shrink = n_fail >= settings.rdsa_patience
     # A chain stranded on a non-finite cost widens its step on failures instead, until it
     # reaches finite ground.
     stranded = ~jnp.isfinite(state.cost)
     alpha = jnp.where(
         accepted | (stranded & shrink),
-        state.alpha * settings.rdsa_grow,
-        jnp.where(shrink, state.alpha * settings.rdsa_shrink, state.alpha),
+        alpha0 * settings.rdsa_grow,
+        jnp.where(shrink, alpha0 * settings.rdsa_shrink, alpha0),
     )
     state = commit(state._replace(key=key), accepted, x_new, cost_new)
-    return state._replace(
-        alpha=jnp.clip(alpha, ALPHA_MIN, ALPHA_MAX).astype(state.alpha.dtype),
-        n_fail=jnp.where(shrink, 0, n_fail),
-    )
+    alpha = jnp.clip(alpha, ALPHA_MIN, ALPHA_MAX).astype(alpha0.dtype)
+    return state._replace(adapt=Step(alpha, jnp.where(shrink, 0, n_fail)))
 
 
 #: Random direction search (method ``"rdsa"``).

@@ -111,7 +111,7 @@ def test_adapt_scale_follows_acceptance():
     state = csaa.init(jax.random.key(0), jnp.zeros(3), 1.0, -jnp.ones(3), jnp.ones(3), s)
     up = csaa.adapt_scale(state, 0.9, s)
     down = csaa.adapt_scale(state, 0.0, s)
-    assert float(up.scale) == pytest.approx(0.1 * math.exp(2.0 * 0.5), rel=1e-12)
-    assert float(down.scale) == pytest.approx(0.1 * math.exp(-2.0 * 0.4), rel=1e-12)
-    huge = csaa.adapt_scale(state._replace(scale=jnp.asarray(0.9)), 1.0, s)
-    assert float(huge.scale) == csaa.SCALE_MAX
+    assert float(up.adapt) == pytest.approx(0.1 * math.exp(2.0 * 0.5), rel=1e-12)
+    assert float(down.adapt) == pytest.approx(0.1 * math.exp(-2.0 * 0.4), rel=1e-12)
+    huge = csaa.adapt_scale(state._replace(adapt=jnp.asarray(0.9)), 1.0, s)
+    assert float(huge.adapt) == csaa.SCALE_MAX
