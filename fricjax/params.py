@@ -224,17 +224,6 @@ class ParamSpec:
         return ParamSpec(params)
 
     # -- editing --------------------------------------------------------------------------
-    def with_values(self, values: Mapping[str, float]) -> ParamSpec:
-        """A copy with the initial/fixed values replaced (bounds unchanged, clipped in)."""
-        self.flatten(values)  # name check
-        params = tuple(
-            replace(p, init=float(np.clip(values[p.name], p.lower, p.upper)))
-            if p.name in values
-            else p
-            for p in self.params
-        )
-        return replace(self, params=params)
-
     def with_fixed(self, values: Mapping[str, float]) -> ParamSpec:
         """A copy where the named parameters are fixed at the given values."""
         self.flatten(values)

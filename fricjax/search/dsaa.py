@@ -43,13 +43,6 @@ from fricjax.search.annealing import (
 )
 
 
-def grid_step(
-    lower: Float[ArrayLike, " d"], upper: Float[ArrayLike, " d"], n_bits: int
-) -> Float[Array, " d"]:
-    """Spacing of the DSAA grid, ``(b − a)/(2^n − 1)``, in each parameter's unit."""
-    return (jnp.asarray(upper) - jnp.asarray(lower)) / (2**n_bits - 1)
-
-
 def _powers(n_bits: int) -> Int[Array, " n"]:
     return 2 ** jnp.arange(n_bits - 1, -1, -1, dtype=jnp.int64)
 

@@ -451,10 +451,6 @@ class Separable:
         """``θ_nl -> (E_P, θ)`` (:class:`CostAndTheta`)."""
         return CostAndTheta(self.full_theta.projection)
 
-    def expand(self, theta_nl: Float[Array, "C d_nl"]) -> np.ndarray:
-        """``full_theta`` over a batch ``[C, d_nl] -> [C, d]``."""
-        return self.project(theta_nl)[0]
-
     def describe(self) -> str:
         """E.g. ``"omega, vs over 2-D; 24 linear parameters solved exactly"``."""
         solved = f"{len(self.linear_names)} linear parameters solved exactly"
