@@ -425,7 +425,7 @@ def _finding(
         explanation += (
             f" The record cannot tell it from {names}: each explains it about as well "
             "(Vuong's test not significant); a test that moves the body differently would "
-            "separate them."
+            "separate them (`fricjax design` finds one within the rig's limits)."
         )
     return Finding(
         effect=f.effect,
