@@ -688,6 +688,7 @@ def _fit_rows(
     weights: Float[Array, " stages"],
     settings: RefineSettings,
     gain_tol: float,
+    accelerate: Bool[Array, ""],
 ) -> tuple[Refined, Float[Array, "B m"], Float[Array, "B m D"]]:
     """LM of every row (components outside ``free[b]`` pinned at ``x0s[b]``, the Jacobian
     taken along ``directions[b]``, which span the row's free parameters; the samples with
@@ -700,7 +701,8 @@ def _fit_rows(
     ``w·√L`` of the residual replaced by ``weights[i]`` (module docstring, "Tying the
     segments"); a ``lax.scan`` over the stages, so that the Jacobian program has one call
     site. ``cost_before`` is the first stage's start, ``n_steps`` the sum over the stages,
-    ``success`` and the rest the last stage's."""
+    ``success`` and the rest the last stage's. ``accelerate``: geodesic or plain steps
+    (:func:`fricjax.levenberg.levenberg_marquardt`), traced: one program serves both."""
     TRACES[(residual.model.name, *x0s.shape, residual.x.shape[0], directions.shape[1])] += 1
 
     def one(
@@ -723,6 +725,7 @@ def _fit_rows(
                 keep,
                 settings,
                 gain_tol,
+                accelerate,
             )
             # r and J at the end point come from the iterations' one call of the Jacobian
             # program; the held columns are exactly zero
@@ -760,6 +763,7 @@ def fit_output_error_batch(
     states: tuple[np.ndarray, np.ndarray] | None = None,
     n_directions: int | None = None,
     samples: Float[np.ndarray, " n"] | None = None,
+    accelerate: bool = True,
 ) -> list[OutputErrorFit]:
     """B output-error fits of ONE model as one compiled program (:func:`fit_output_error`
     row by row): row ``b`` starts from ``starts[b]`` (the spec's free parameters, in
@@ -792,6 +796,8 @@ def fit_output_error_batch(
             default: every sample. Traced: the same program. The returned ``x_sim`` and
             ``position_rms`` then hold on the fitted samples only (the held-out ones read as
             the record).
+        accelerate: geodesic acceleration (a first fit) or plain damped steps (a restart
+            from a converged end point; :mod:`fricjax.levenberg`, "Two kinds of step").
 
     Returns:
         B :class:`OutputErrorFit`, in row order.
@@ -858,6 +864,7 @@ def fit_output_error_batch(
         weights,
         checked_refine_settings(settings.refine_settings()),
         settings.gain_tol,
+        jnp.asarray(accelerate),
     )
     out, r_opt, jac = jax.device_get((out, r_opt, jac))
     return [

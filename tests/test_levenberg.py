@@ -168,3 +168,30 @@ def test_a_small_column_still_counts_in_the_stop():
     assert bool(out.success)
     assert float(out.cost_after) < 1e-2
     assert abs(float(out.x[1]) - 3.0) < 0.35
+
+
+def _counted(fn, calls):
+    def counted(th):
+        jax.debug.callback(lambda: calls.append(1))
+        return fn(th)
+
+    return counted
+
+
+def test_plain_steps_reach_the_minimum_with_one_residual_per_step():
+    lo, hi = np.array([-2.0, -2.0]), np.array([2.0, 3.0])
+    x0 = jnp.asarray([-1.2, 1.0])
+    calls = {True: [], False: []}
+    fits = {
+        bent: levenberg_marquardt(
+            _counted(_rosenbrock, calls[bent]), _with_jacobian(_rosenbrock), x0, lo, hi,
+            jnp.ones(2, bool), SETTINGS, accelerate=bent,
+        ).refined
+        for bent in (True, False)
+    }  # fmt: skip
+    for out in fits.values():
+        assert bool(out.success)
+        np.testing.assert_allclose(out.x, [1.0, 1.0], atol=1e-7)
+    # a bent step probes the residual at z + δ·h before its trial; a plain one does not
+    assert len(calls[False]) == int(fits[False].n_steps) + 1
+    assert len(calls[True]) == 2 * (int(fits[True].n_steps) + 1)

@@ -264,14 +264,18 @@ def _fit(
     settings: OutputErrorSettings,
     states: tuple[np.ndarray, np.ndarray] | None,
     n_directions: int | None,
+    accelerate: bool = True,
 ) -> OutputErrorFit:
     """One output-error fit of a superset model from named values, its pinned parameters
-    held by the mask ``free`` ([d] bool, :meth:`Superset.moving`), K = ``n_directions``."""
+    held by the mask ``free`` ([d] bool, :meth:`Superset.moving`), K = ``n_directions``;
+    ``accelerate``: geodesic or plain steps (:mod:`fricjax.levenberg`)."""
     spec = problem.spec
     known = {k: float(v) for k, v in start.items() if k in spec}
     row = spec.flatten({**spec.as_dict(), **known})[None]
     k = n_directions or int(free.sum())
-    return fit_output_error_batch(problem, row, free[None], settings, states, n_directions=k)[0]
+    return fit_output_error_batch(
+        problem, row, free[None], settings, states, n_directions=k, accelerate=accelerate
+    )[0]
 
 
 # A fit is run again from its end while its cost still falls by more than this [σ_x²]: the
@@ -297,7 +301,9 @@ def converged(
     restarted from its end until a restart lowers its cost by less than :data:`CONVERGED`,
     whether or not the fit met its own tolerance: Levenberg–Marquardt's stop is local (its
     Gauss–Newton decrement), and a restart with a fresh trust region can still descend
-    (0.272 s twin's base: stopped at 191.86 σ_x², two restarts reached 189.07).
+    (0.272 s twin's base: stopped at 191.86 σ_x², two restarts reached 189.07). The first
+    fit bends its steps; the restarts take plain ones, which do not stall where the
+    simulation's events spoil the bend (:mod:`fricjax.levenberg`, "Two kinds of step").
     ``more(seconds)``: whether a round expected to take that long (the last one's wall
     time) may still start (a time limit); None: always. ``rounds``: each round's (cost
     [σ_x²], LM steps, wall seconds) is appended to it (benchmarks)."""
@@ -311,7 +317,7 @@ def converged(
             break
         began = time.perf_counter()
         states = (fit.states_x, fit.states_v)
-        again = _fit(problem, free, fit.params, settings, states, n_directions)
+        again = _fit(problem, free, fit.params, settings, states, n_directions, False)
         last = time.perf_counter() - began
         if rounds is not None:
             rounds.append((again.cost, again.n_steps, last))
@@ -400,13 +406,15 @@ def fit_rows(
     k: int,
     samples: Sequence[np.ndarray] | None = None,
     more: Callable[[], bool] | None = None,
+    accelerate: bool = True,
 ) -> list[OutputErrorFit]:
     """The rows fitted as ONE program (:func:`fit_output_error_batch`), padded to
     :func:`_padded` rows; the fits of the given rows, in order. ``samples``: each row's
     held-out mask (1 fitted, 0 held out), default every sample. ``more()``: asked before
     every call after the first where the rows take several calls (a CPU: one row a call);
     once it says no, the fits so far are returned, fewer than the rows (a time limit or
-    Ctrl-C then waits for one row's fit, not for the whole batch)."""
+    Ctrl-C then waits for one row's fit, not for the whole batch). ``accelerate``: geodesic
+    or plain steps (:mod:`fricjax.levenberg`)."""
     lanes = lanes_per_call()
     if len(rows) > lanes:
         out: list[OutputErrorFit] = []
@@ -422,6 +430,7 @@ def fit_rows(
                 states[part],
                 k,
                 None if samples is None else samples[part],
+                accelerate=accelerate,
             )
         return out
     n, B = len(rows), _padded(len(rows))
@@ -433,7 +442,7 @@ def fit_rows(
     vs = np.stack([np.asarray(st[1]) for st in pad(states)])
     held = None if samples is None else np.stack(pad(samples))
     fits = fit_output_error_batch(
-        problem, np.stack(pad(rows)), np.stack(pad(free)), settings, (xs, vs), k, held
+        problem, np.stack(pad(rows)), np.stack(pad(free)), settings, (xs, vs), k, held, accelerate
     )
     return fits[:n]
 
@@ -458,8 +467,9 @@ def converged_rows(
 ) -> list[OutputErrorFit]:
     """Each of ``fits`` restarted from its end, all in one batch per round, until a round
     gains less than :data:`CONVERGED` (:func:`converged`, row by row; at most
-    :data:`MAX_ROUNDS` rounds in all). ``more()``: as in :func:`fit_rows`; once it says no,
-    each fit is the best reached so far."""
+    :data:`MAX_ROUNDS` rounds in all), with plain steps as :func:`converged`'s restarts.
+    ``more()``: as in :func:`fit_rows`; once it says no, each fit is the best reached so
+    far."""
     spec = problem.spec
     best = list(fits)
     open_ = list(range(len(best)))
@@ -475,6 +485,7 @@ def converged_rows(
             k,
             None if samples is None else [samples[i] for i in open_],
             more,
+            accelerate=False,
         )
         still = []
         for i, fit in zip(open_, again, strict=False):

@@ -204,21 +204,25 @@ def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> No
 
     costs = iter([100.0, 90.0, 80.0, 79.9, 79.8])
     calls: list[float] = []
+    bent: list[bool] = []
 
-    def fake_fit(problem, free, start, settings, states, n_directions):
+    def fake_fit(problem, free, start, settings, states, n_directions, accelerate=True):
         cost = next(costs)
         calls.append(cost)
+        bent.append(accelerate)
         return SimpleNamespace(success=False, cost=cost, params={}, states_x=0, states_v=0)
 
     monkeypatch.setattr(judge, "_fit", fake_fit)
     fit = judge.converged(None, None, {}, None)
     # 100 -> 90 -> 80 gain 10 each, 80 -> 79.9 gains less than CONVERGED: stop there
     assert calls == [100.0, 90.0, 80.0, 79.9] and fit.cost == 79.9
+    # the first fit bends its steps, the restarts from its end take plain ones
+    assert bent == [True, False, False, False]
 
     # a fit's own convergence flag does not end the rounds: LM's stop is local, and only a
     # restart that gains less than CONVERGED shows the minimum within reach
-    def converged_fit(problem, free, start, settings, states, n_directions):
-        fit = fake_fit(problem, free, start, settings, states, n_directions)
+    def converged_fit(problem, free, start, settings, states, n_directions, accelerate=True):
+        fit = fake_fit(problem, free, start, settings, states, n_directions, accelerate)
         return SimpleNamespace(**{**vars(fit), "success": True})
 
     costs = iter([100.0, 97.0, 96.9])
@@ -244,7 +248,7 @@ def test_a_limit_stops_the_rows_between_calls_not_after_the_batch(monkeypatch) -
 
     calls: list[int] = []
 
-    def fake_batch(problem, rows, free, settings, states, k, held=None):
+    def fake_batch(problem, rows, free, settings, states, k, held=None, accelerate=True):
         calls.append(len(rows))
         return [SimpleNamespace(cost=float(r[0]), params={}, states_x=0, states_v=0) for r in rows]
 
