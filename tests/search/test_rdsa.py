@@ -67,7 +67,9 @@ def test_step_ignores_temperature_and_stays_in_box():
     cold = _step(state, _flat, 0.0, lo, hi, s)
     for field in ("x", "cost", "adapt", "n_accepted"):
         for a, b in zip(
-            jax.tree.leaves(getattr(hot, field)), jax.tree.leaves(getattr(cold, field))
+            jax.tree.leaves(getattr(hot, field)),
+            jax.tree.leaves(getattr(cold, field)),
+            strict=True,
         ):
             np.testing.assert_array_equal(a, b)
     # The flat cost 1 beats the start cost 9: the reflected step of a full range was taken.
