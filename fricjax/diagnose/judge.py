@@ -282,7 +282,8 @@ def _fit(
 # judge's thresholds are tens of σ_x² (ΔBIC > 10 beyond k·ln n), so a fit this close to its
 # minimum cannot move a decision, and a descent cut short cannot pass for a term's gain.
 CONVERGED = 0.5
-# most restarts of one fit (each at most ``max_steps`` Levenberg–Marquardt steps)
+# most restarts of one fit of each kind, bent and plain (each at most ``max_steps``
+# Levenberg–Marquardt steps)
 MAX_ROUNDS = 8
 
 
@@ -301,9 +302,11 @@ def converged(
     restarted from its end until a restart lowers its cost by less than :data:`CONVERGED`,
     whether or not the fit met its own tolerance: Levenberg–Marquardt's stop is local (its
     Gauss–Newton decrement), and a restart with a fresh trust region can still descend
-    (0.272 s twin's base: stopped at 191.86 σ_x², two restarts reached 189.07). The first
-    fit bends its steps; the restarts take plain ones, which do not stall where the
-    simulation's events spoil the bend (:mod:`fricjax.levenberg`, "Two kinds of step").
+    (0.272 s twin's base: stopped at 191.86 σ_x², two restarts reached 189.07). The
+    restarts bend their steps until one gains less than :data:`CONVERGED`, then take plain
+    ones until a plain one does too: plain steps do not stall where the simulation's events
+    spoil the bend (:mod:`fricjax.levenberg`, "Two kinds of step"), bent ones go further
+    along the seed model's curved valley.
     ``more(seconds)``: whether a round expected to take that long (the last one's wall
     time) may still start (a time limit); None: always. ``rounds``: each round's (cost
     [σ_x²], LM steps, wall seconds) is appended to it (benchmarks)."""
@@ -312,19 +315,20 @@ def converged(
     last = time.perf_counter() - began
     if rounds is not None:
         rounds.append((fit.cost, fit.n_steps, last))
-    for _ in range(MAX_ROUNDS - 1):
-        if more is not None and not more(last):
-            break
-        began = time.perf_counter()
-        states = (fit.states_x, fit.states_v)
-        again = _fit(problem, free, fit.params, settings, states, n_directions, False)
-        last = time.perf_counter() - began
-        if rounds is not None:
-            rounds.append((again.cost, again.n_steps, last))
-        done = fit.cost - again.cost < CONVERGED
-        fit = again if again.cost < fit.cost else fit
-        if done:
-            break
+    for accelerate in (True, False):
+        for _ in range(MAX_ROUNDS - 1):
+            if more is not None and not more(last):
+                return fit
+            began = time.perf_counter()
+            states = (fit.states_x, fit.states_v)
+            again = _fit(problem, free, fit.params, settings, states, n_directions, accelerate)
+            last = time.perf_counter() - began
+            if rounds is not None:
+                rounds.append((again.cost, again.n_steps, last))
+            done = fit.cost - again.cost < CONVERGED
+            fit = again if again.cost < fit.cost else fit
+            if done:
+                break
     return fit
 
 
@@ -467,33 +471,36 @@ def converged_rows(
 ) -> list[OutputErrorFit]:
     """Each of ``fits`` restarted from its end, all in one batch per round, until a round
     gains less than :data:`CONVERGED` (:func:`converged`, row by row; at most
-    :data:`MAX_ROUNDS` rounds in all), with plain steps as :func:`converged`'s restarts.
+    :data:`MAX_ROUNDS` rounds of each kind), bent then plain as :func:`converged`'s.
     ``more()``: as in :func:`fit_rows`; once it says no, each fit is the best reached so
     far."""
     spec = problem.spec
     best = list(fits)
-    open_ = list(range(len(best)))
-    for _ in range(MAX_ROUNDS - 1):
-        if not open_ or (more is not None and not more()):
-            break
-        again = fit_rows(
-            problem,
-            [spec.flatten(best[i].params) for i in open_],
-            [free[i] for i in open_],
-            settings,
-            [(best[i].states_x, best[i].states_v) for i in open_],
-            k,
-            None if samples is None else [samples[i] for i in open_],
-            more,
-            accelerate=False,
-        )
-        still = []
-        for i, fit in zip(open_, again, strict=False):
-            if best[i].cost - fit.cost >= CONVERGED:
-                still.append(i)
-            if fit.cost < best[i].cost:
-                best[i] = fit
-        open_ = still
+    for accelerate in (True, False):
+        open_ = list(range(len(best)))
+        for _ in range(MAX_ROUNDS - 1):
+            if not open_:
+                break
+            if more is not None and not more():
+                return best
+            again = fit_rows(
+                problem,
+                [spec.flatten(best[i].params) for i in open_],
+                [free[i] for i in open_],
+                settings,
+                [(best[i].states_x, best[i].states_v) for i in open_],
+                k,
+                None if samples is None else [samples[i] for i in open_],
+                more,
+                accelerate=accelerate,
+            )
+            still = []
+            for i, fit in zip(open_, again, strict=False):
+                if best[i].cost - fit.cost >= CONVERGED:
+                    still.append(i)
+                if fit.cost < best[i].cost:
+                    best[i] = fit
+            open_ = still
     return best
 
 

@@ -202,7 +202,7 @@ def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> No
     round always runs, ``more`` sees the last round's wall time."""
     import fricjax.diagnose.judge as judge
 
-    costs = iter([100.0, 90.0, 80.0, 79.9, 79.8])
+    costs = iter([100.0, 90.0, 80.0, 79.9, 79.8, 79.7])
     calls: list[float] = []
     bent: list[bool] = []
 
@@ -214,10 +214,10 @@ def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> No
 
     monkeypatch.setattr(judge, "_fit", fake_fit)
     fit = judge.converged(None, None, {}, None)
-    # 100 -> 90 -> 80 gain 10 each, 80 -> 79.9 gains less than CONVERGED: stop there
-    assert calls == [100.0, 90.0, 80.0, 79.9] and fit.cost == 79.9
-    # the first fit bends its steps, the restarts from its end take plain ones
-    assert bent == [True, False, False, False]
+    # 100 -> 90 -> 80 gain 10 each, 80 -> 79.9 gains less than CONVERGED: the bent rounds
+    # stop there, and one plain round gaining less than CONVERGED ends the fit
+    assert calls == [100.0, 90.0, 80.0, 79.9, 79.8] and fit.cost == 79.8
+    assert bent == [True, True, True, True, False]
 
     # a fit's own convergence flag does not end the rounds: LM's stop is local, and only a
     # restart that gains less than CONVERGED shows the minimum within reach
@@ -225,11 +225,11 @@ def test_base_rounds_stop_when_the_time_limit_refuses_another(monkeypatch) -> No
         fit = fake_fit(problem, free, start, settings, states, n_directions, accelerate)
         return SimpleNamespace(**{**vars(fit), "success": True})
 
-    costs = iter([100.0, 97.0, 96.9])
+    costs = iter([100.0, 97.0, 96.9, 96.8])
     calls.clear()
     monkeypatch.setattr(judge, "_fit", converged_fit)
     fit = judge.converged(None, None, {}, None)
-    assert calls == [100.0, 97.0, 96.9] and fit.cost == 96.9
+    assert calls == [100.0, 97.0, 96.9, 96.8] and fit.cost == 96.8
 
     monkeypatch.setattr(judge, "_fit", fake_fit)
     costs = iter([100.0, 90.0, 80.0])
