@@ -7,11 +7,14 @@ whose diagnosis ends with an ambiguity set, for each case:
 2. design the next test on its first ambiguity set (``fricjax.api.design_test``, defaults);
 3. run that test on the benchmark's *own* plant (``concealed/plant.py``: scipy, no fricjax
    code) with the case's hidden effect, and add the case's noise (a new seed);
-4. the same with two standard tests of equal duration: the chirp ``design`` prints beside
-   its own profile at the same peak force (the issue's standard), and that chirp scaled down
-   until every model keeps the record's travel and speed (what the design is held to);
-5. diagnose each pair of records jointly (``fricjax.api.diagnose_recordings``) and record
-   whether the hidden effect is then named first, and named alone (no alternative).
+4. the same with the standard test of equal duration and peak force: the chirp ``design``
+   prints beside its own profile (the issue's standard);
+5. diagnose each pair of records as one record (``fricjax.api.diagnose_recording`` with the
+   two recordings: ``fricjax diagnose REC NEXT --joined``, the output-error judge with
+   every parameter shared) and record whether the hidden effect is then named first, and
+   named alone (no alternative).
+
+The test starts at rest at the record's first position, as the design plans it.
 
 Reads the truth only to build the plant and to score. Usage::
 
@@ -43,15 +46,18 @@ from fricjax.data.recording import Recording, write_recording
 ROOT = Path(__file__).resolve().parents[1]
 #: The second test of each pair: the design, the chirp of equal duration and peak force (the
 #: issue's standard), and that chirp scaled down until it keeps the travel and speed limits.
-ARMS = ("designed", "chirp", "held_chirp")
+ARMS = ("designed", "chirp")
 
 
-def run_plant(truth: dict[str, Any], t: np.ndarray, u: np.ndarray, seed: int) -> np.ndarray:
+def run_plant(
+    truth: dict[str, Any], t: np.ndarray, u: np.ndarray, x0: float, seed: int
+) -> np.ndarray:
     """The case's plant (hidden effect included) under the force profile ``u`` [N] at ``t``
-    [s], from rest, with the case's position noise (a new draw); x [m]."""
+    [s], from rest at ``x0`` [m] (where the design starts the test: the record's first
+    position), with the case's position noise (a new draw); x [m]."""
     drive = pl.Drive("input", profile=lambda s: np.interp(s, t, u))
     effect = pl.Effect(truth["effect"], truth.get("params", {}))
-    x, _, _ = pl.Plant(truth["base"], drive, truth["mass_given_kg"], effect).simulate(t)
+    x, _, _ = pl.Plant(truth["base"], drive, truth["mass_given_kg"], effect).simulate(t, x0)
     rng = np.random.default_rng(seed)
     return x + rng.normal(0.0, truth["sigma"], t.size)
 
@@ -101,11 +107,10 @@ def one_case(path: Path, out: Path, time_limit: float) -> dict[str, Any] | None:
     arms = {
         "designed": result.u,
         "chirp": result.standard_u["chirp"],
-        "held_chirp": result.standard_u["chirp within limits"],
     }
     for label, u in arms.items():
         try:
-            x = run_plant(truth, result.t, u, seed=7)
+            x = run_plant(truth, result.t, u, result.plan.x0, seed=7)
         except RuntimeError as e:  # the plant chatters under this input
             row[label] = {
                 "named": "",
@@ -120,7 +125,7 @@ def one_case(path: Path, out: Path, time_limit: float) -> dict[str, Any] | None:
         pair_dir = folder / f"pair_{label}"
         t2 = time.perf_counter()
         if not (pair_dir / "diagnosis.json").is_file():
-            api.diagnose_recordings([path, second], config, out=pair_dir, overrides=limit)
+            api.diagnose_recording([path, second], config, out=pair_dir, overrides=limit)
         pair = json.loads((pair_dir / "diagnosis.json").read_text(encoding="utf-8"))
         first, alts = first_finding(pair)
         row[label] = {
@@ -163,15 +168,15 @@ def report(rows: list[dict[str, Any]], machine: str) -> str:
         f"Machine: {machine}. Command: `PYTHONPATH=. python benchmarks/design_proof.py` "
         "(module docstring). Force-driven catalogue cases whose diagnosis ends with an "
         "ambiguity set; the pair (record + new test run on the benchmark's own plant) "
-        "diagnosed jointly.",
+        "diagnosed as one record (`fricjax diagnose REC NEXT --joined`).",
         "",
         "D is the design's least separation of any pair (expected LR, `fricjax.design`); the "
         "chirp has the same duration and peak force but is not held to the record's travel "
         "and speed: its excess is given.",
         "",
         "| case | record s | truth | named (alternatives) | design D / chirp D (chirp's "
-        "excess) | pair, designed | pair, chirp | pair, chirp within limits | design s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "excess) | pair, designed | pair, chirp | design s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
 
     def cell(p: dict[str, Any] | None) -> str:
@@ -184,7 +189,7 @@ def report(rows: list[dict[str, Any]], machine: str) -> str:
         if "designed" not in r:
             lines.append(
                 f"| {r['case']} | {r.get('duration_s', '')} | {r['truth']} | "
-                f"{r['named'] or '—'} | {r.get('skipped', '')} | | | | |"
+                f"{r['named'] or '—'} | {r.get('skipped', '')} | | | |"
             )
             continue
         lines.append(

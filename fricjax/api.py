@@ -17,7 +17,7 @@ from fricjax.data.recording import MAX_MAGNITUDE, Recording, read_recording
 from fricjax.errors import FricjaxError, where
 from fricjax.io.atomic import check_outputs
 from fricjax.params import check_values
-from fricjax.problem import Problem, build_problem
+from fricjax.problem import Problem, build_problem, joined
 from fricjax.programs import enable_compilation_cache as enable_compilation_cache
 from fricjax.validate import read_params
 
@@ -490,7 +490,7 @@ def _diagnose_settings(cfg: Config, overrides: dict[str, Any] | None) -> tuple[A
 
 
 def diagnose_recording(
-    recording: str | Path | Recording,
+    recording: str | Path | Recording | list[str | Path],
     config: str | Path | Config,
     *,
     out: str | Path,
@@ -510,18 +510,37 @@ def diagnose_recording(
     (progress); ``stop``: a stop request from another thread (Ctrl-C): what was judged
     is written, marked interrupted. Never reads ``/truth``: the recording is read through
     :func:`read_recording`, which ignores that group.
+
+    A list of recordings is judged as one record (:func:`fricjax.problem.joined`): tests of
+    one plant run one after the other with nothing changed between them (the test that
+    ``fricjax design`` proposes, run after the record it was designed from), every
+    parameter shared and each recording's motion simulated from its own state.
     """
     from fricjax.diagnose.report import OUTPUT_FILES, write_diagnosis
     from fricjax.diagnose.run import diagnose
 
-    source = (recording.path or recording.name) if isinstance(recording, Recording) else recording
     config_path = (config.source or None) if isinstance(config, Config) else config
+    if isinstance(recording, list):
+        sources: dict[str, str | Path | None] = {f"recording {r}": r for r in recording}
+        source: str | Path = " + ".join(str(r) for r in recording)
+    else:
+        source = (
+            (recording.path or recording.name) if isinstance(recording, Recording) else recording
+        )
+        sources = {"recording": source}
     check_outputs(
         [Path(out) / name for name in OUTPUT_FILES],
-        {"recording": source, "--config": config_path, "--validation": validation},
+        {**sources, "--config": config_path, "--validation": validation},
         "--out",
     )
-    _, cfg, problem = load(recording, config, mass=mass)
+    if isinstance(recording, list):
+        if len(recording) < 2:
+            raise FricjaxError("diagnose: recordings judged as one record need at least two")
+        cfg = config if isinstance(config, Config) else load_config(config)
+        recs = alike_recordings(recording, mass=mass)
+        problem = joined([build_problem(r, cfg) for r in recs])
+    else:
+        _, cfg, problem = load(recording, config, mass=mass)
     ident, settings, _ = _diagnose_settings(cfg, overrides)
     val = None
     if validation is not None:

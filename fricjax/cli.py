@@ -551,6 +551,15 @@ def diagnose(
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress display")] = False,
     mass: MassOpt = None,
+    joined: Annotated[
+        bool,
+        typer.Option(
+            "--joined",
+            help="Several recordings judged as one record: one run of tests, every parameter "
+            "shared (the test `fricjax design` proposes, run after the record); without it, "
+            "the diagnosis across recordings, which also tests run-to-run drift",
+        ),
+    ] = False,
 ) -> None:
     """Locate the mismatch, name the physics left out, model it, show the fit improve.
     Ctrl-C stops it within the fit in flight and writes what was judged (exit 3)."""
@@ -558,14 +567,21 @@ def diagnose(
     from fricjax.data.recording import read_recording
     from fricjax.report.tables import fmt, p_text
 
-    if len(recordings) > 1:
+    if joined and len(recordings) < 2:
+        raise FricjaxError("--joined: needs two or more recordings")
+    if len(recordings) > 1 and not joined:
         _diagnose_across(
             recordings, config, out, validation, alpha, max_terms, time_limit, mass, quiet
         )
         return
-    config = config_or_default(recordings[0], config)
-    recording = read_recording(recordings[0], mass=mass)  # read once: warnings and diagnosis
-    _warn_scale(recording, config, mass)
+    if joined:
+        if config is None:
+            raise FricjaxError("--config: missing; recordings judged as one record need one")
+        target: Any = list(recordings)
+    else:
+        config = config_or_default(recordings[0], config)
+        target = read_recording(recordings[0], mass=mass)  # read once: warnings, diagnosis
+        _warn_scale(target, config, mass)
     # most of a cold diagnosis is compilation; a later record of the same length and
     # config (data are arguments, not constants) loads the programs instead
     enable_compilation_cache()
@@ -573,7 +589,7 @@ def diagnose(
     with _stage_progress(quiet) as on_stage:
         diag, paths = _stoppable(
             lambda: diagnose_recording(
-                recording,
+                target,
                 config,
                 out=out,
                 validation=validation,

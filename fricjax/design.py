@@ -338,7 +338,7 @@ def input_band(u: Float[np.ndarray, " n"], dt: float, share: float = POWER_BAND)
 
 def record_limits(problem: Problem) -> Limits:
     """What the record did: its input range, its travel and its peak speed."""
-    u = np.asarray(problem.u, dtype=np.float64)
+    u = np.asarray(problem.drive_input, dtype=np.float64)
     lo, hi = float(np.min(u)), float(np.max(u))
     x = np.asarray(problem.x, dtype=np.float64)
     return Limits(
@@ -357,7 +357,7 @@ def plan_for(problem: Problem, duration: float | None = None) -> Plan:
     n = round((duration if duration is not None else problem.n * dt) / dt)
     if n < 16:
         raise FricjaxError(f"{where('design', 'duration')}: {n} samples; at least 16 needed")
-    band = input_band(np.asarray(problem.u), dt)
+    band = input_band(np.asarray(problem.drive_input), dt)
     harmonics = int(np.clip(math.floor(band * n * dt), 2, n // 4))
     return Plan(n=n, dt=dt, x0=float(problem.x[0]), harmonics=harmonics)
 
@@ -724,7 +724,7 @@ def standard_inputs(problem: Problem, plan: Plan, limits: Limits) -> dict[str, n
     chirp = limits.u_mid + limits.u_peak * np.sin(
         2 * np.pi * (f0 * t + 0.5 * (f1 - f0) * t**2 / plan.duration)
     )
-    u = np.asarray(problem.u, dtype=np.float64)
+    u = np.asarray(problem.drive_input, dtype=np.float64)
     again = np.resize(u, plan.n)
     return {
         "chirp": chirp,

@@ -122,6 +122,7 @@ smears them over a few ms), which 10 % of the range covers.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter
 from collections.abc import Mapping
@@ -244,7 +245,10 @@ class Segmentation(NamedTuple):
     """How ``n`` samples are cut: ``S`` segments of ``L`` intervals (``L + 1`` samples).
 
     seg, pos: [n] int, segment of sample k and its index in that segment;
-    starts: [S] int, first sample of each segment; n: samples; dt: step [s].
+    starts: [S] int, first sample of each segment; ends: [S] int, last sample of the
+    recording each segment belongs to (beyond it the segment is padding); tie: [S − 1],
+    1 where segment s + 1 continues segment s, 0 where it starts a later recording of a
+    joined problem (its continuity defect is not fitted); n: samples; dt: step [s].
     """
 
     S: int
@@ -254,6 +258,8 @@ class Segmentation(NamedTuple):
     seg: np.ndarray
     pos: np.ndarray
     starts: np.ndarray
+    ends: np.ndarray
+    tie: np.ndarray
 
     @property
     def duration(self) -> float:
@@ -261,40 +267,74 @@ class Segmentation(NamedTuple):
         return self.L * self.dt
 
 
-def segmentation(n: int, dt: float, settings: OutputErrorSettings) -> Segmentation:
-    """Segment count and length for ``n`` samples of step ``dt`` (module docstring)."""
+def segmentation(
+    n: int, dt: float, settings: OutputErrorSettings, joins: tuple[int, ...] = ()
+) -> Segmentation:
+    """Segment count and length for ``n`` samples of step ``dt`` (module docstring).
+
+    ``joins``: the first sample of each later recording of a joined problem
+    (:func:`fricjax.problem.joined`). Each recording is then cut as it would be alone, with
+    the longest of their segment lengths for all (the segments form one ``[S, L + 1]``
+    batch), and no segment spans a join."""
     if n < 2:
         raise FricjaxError(f"{where('output_error', 'n')}: needs >= 2 samples, got {n}")
-    intervals = n - 1
-    if settings.segments > 0:
-        S = settings.segments
-    elif math.isinf(settings.segment_s):
-        S = 1
-    else:
-        S = max(1, round(intervals * dt / settings.segment_s))
-    S = min(S, intervals)
-    L = -(-intervals // S)
-    # ⌈·⌉ can leave the last segments empty (e.g. 10 intervals in 4 segments of 3): drop them.
-    S = -(-intervals // L)
-    k = np.arange(n)
-    seg = np.minimum(k // L, S - 1)
-    return Segmentation(S, L, n, float(dt), seg, k - seg * L, np.arange(S) * L)
+    bounds = [0, *joins, n]
+    if any(b - a < 2 for a, b in itertools.pairwise(bounds)):
+        raise FricjaxError(f"{where('output_error', 'joins')}: a recording of < 2 samples")
+
+    def length(intervals: int) -> int:
+        if settings.segments > 0:
+            S = settings.segments
+        elif math.isinf(settings.segment_s):
+            S = 1
+        else:
+            S = max(1, round(intervals * dt / settings.segment_s))
+        S = min(S, intervals)
+        return -(-intervals // S)
+
+    parts = list(itertools.pairwise(bounds))
+    L = max(length(b - a - 1) for a, b in parts)
+    seg, pos, starts, ends, tie = [], [], [], [], []
+    for a, b in parts:
+        # ⌈·⌉ can leave the last segments empty (10 intervals in 4 segments of 3): none is made
+        S_m = -(-(b - a - 1) // L)
+        k = np.arange(b - a)
+        j = np.minimum(k // L, S_m - 1)
+        seg.append(len(starts) + j)
+        pos.append(k - j * L)
+        tie.extend([0.0] * bool(starts) + [1.0] * (S_m - 1))
+        starts.extend(a + L * np.arange(S_m))
+        ends.extend([b - 1] * S_m)
+    return Segmentation(
+        len(starts),
+        L,
+        n,
+        float(dt),
+        np.concatenate(seg),
+        np.concatenate(pos),
+        np.asarray(starts, dtype=int),
+        np.asarray(ends, dtype=int),
+        np.asarray(tie, dtype=np.float64),
+    )
 
 
-def noise_scale(x: Float[np.ndarray, " n"]) -> float:
+def noise_scale(x: Float[np.ndarray, " n"], joins: tuple[int, ...] = ()) -> float:
     """White-noise std of a sampled position [m] from its third difference,
-    ``std(Δ³x)/√20``; an upper bound (the motion adds ``jerk·dt³``), floored at 1e-12 m."""
+    ``std(Δ³x)/√20``, taken within each recording of a joined problem (``joins``, where
+    the position jumps); an upper bound (the motion adds ``jerk·dt³``), floored at 1e-12 m."""
     x = np.asarray(x, dtype=np.float64)
-    if x.shape[0] < 4:
+    parts = [d for part in np.split(x, list(joins)) if (d := np.diff(part, 3)).size]
+    if not parts:
         return 1e-12
-    return max(float(np.std(np.diff(x, 3)) / math.sqrt(20.0)), 1e-12)
+    return max(float(np.std(np.concatenate(parts))) / math.sqrt(20.0), 1e-12)
 
 
 def _segment_grid(t: np.ndarray, u: np.ndarray, seg: Segmentation) -> tuple[np.ndarray, np.ndarray]:
-    """[S, L + 1] time and input of every segment; beyond the record, time continues with
-    step dt and the input is held at its last value (those samples are not fitted)."""
+    """[S, L + 1] time and input of every segment; beyond its recording's end, time
+    continues with step dt and the input is held at its last value (those samples are not
+    fitted)."""
     idx = seg.starts[:, None] + np.arange(seg.L + 1)[None, :]
-    inside = np.minimum(idx, seg.n - 1)
+    inside = np.minimum(idx, seg.ends[:, None])
     tt = t[inside] + (idx - inside) * seg.dt
     return tt, u[inside]
 
@@ -358,6 +398,7 @@ class OutputError(eqx.Module):
     x_scale: Float[Array, ""]
     v_to_x: Float[Array, ""]
     weight: Float[Array, ""]  # w·√L
+    tie: Float[Array, " S1"]  # 1: the defect is fitted; 0: a join of recordings (none)
     directions: Float[Array, "K P"]
     keep: Float[Array, " n"]  # 1: the sample is fitted; 0: held out (cross-validation)
     substeps: int = eqx.field(static=True)
@@ -404,8 +445,13 @@ class OutputError(eqx.Module):
         :meth:`value_and_jacobian`)."""
         x_sim, dx, dv = self.parts(theta_aug)
         r = (x_sim - self.x) / self.x_scale * self.keep
-        c = self.weight / self.x_scale * jnp.concatenate([dx, dv * self.v_to_x])
+        c = self.weight / self.x_scale * jnp.concatenate([dx, dv * self.v_to_x]) * self._ties
         return jnp.concatenate([r, c])
+
+    @property
+    def _ties(self) -> Float[Array, " S2"]:
+        """[2(S − 1)]: the tie of every defect row, position rows then velocity rows."""
+        return jnp.concatenate([self.tie, self.tie])
 
     def value_and_jacobian(
         self, theta_aug: Float[Array, " D"]
@@ -457,7 +503,7 @@ class OutputError(eqx.Module):
             start_v = diag * t_end[K + 1][:, None] - (upper if which == 1 else 0.0)
             return factor * jnp.concatenate([t_end[:K].T @ dirs, start_x, start_v], 1)
 
-        w = self.weight * scale
+        w = (self.weight * scale * self.tie)[:, None]
         jac = jnp.concatenate(
             [
                 j_samples,
@@ -466,7 +512,9 @@ class OutputError(eqx.Module):
             ]
         )
         r = (xs[self.seg, self.pos] - self.x) * (scale * self.keep)
-        c = w * jnp.concatenate([xs[:-1, -1] - xi[1:], (vs[:-1, -1] - nu[1:]) * self.v_to_x])
+        c = (self.weight * scale * self._ties) * jnp.concatenate(
+            [xs[:-1, -1] - xi[1:], (vs[:-1, -1] - nu[1:]) * self.v_to_x]
+        )
         return jnp.concatenate([r, c]), jac
 
     def __call__(self, theta_aug: Float[Array, " D"]) -> Float[Array, " m"]:
@@ -563,11 +611,11 @@ def output_error_residual(
     t = np.asarray(problem.t, dtype=np.float64)
     x = np.asarray(problem.x, dtype=np.float64)
     v = np.asarray(problem.v, dtype=np.float64)
-    u = np.asarray(problem.u, dtype=np.float64)
+    u = np.asarray(problem.drive_input, dtype=np.float64)
     n = t.shape[0]
     dt = float((t[-1] - t[0]) / (n - 1)) if n > 1 else math.nan
-    seg = segmentation(n, dt, settings)
-    x_scale = settings.x_scale or noise_scale(x)
+    seg = segmentation(n, dt, settings, problem.joins)
+    x_scale = settings.x_scale or noise_scale(x, problem.joins)
     known = {k: float(val) for k, val in start.items() if k in spec}
     p_lower = np.array([p.lower for p in spec.params])
     p_upper = np.array([p.upper for p in spec.params])
@@ -597,6 +645,7 @@ def output_error_residual(
         x_scale=jnp.asarray(x_scale, dtype=jnp.float64),
         v_to_x=jnp.asarray(seg.duration, dtype=jnp.float64),
         weight=jnp.asarray(settings.defect_weight * math.sqrt(seg.L), dtype=jnp.float64),
+        tie=jnp.asarray(seg.tie, dtype=jnp.float64),
         directions=jnp.eye(len(spec.names), dtype=jnp.float64),
         keep=jnp.ones(n, dtype=jnp.float64),
         substeps=settings.substeps,
@@ -636,7 +685,8 @@ class OutputErrorFit(NamedTuple):
     (units of σ_x²); cost_start: at the start; position_rms: √(mean((x_sim − x)²)) [m] over
     the n samples; x_sim [n]: the stitched simulated position [m]; x_scale: σ_x [m];
     defect_x, defect_v: max |defect| [m], [m/s]; states_x, states_v [S]: ξ [m], ν [m/s];
-    n_segments: S; segment_samples: L; n_residual: length of r_aug; n_steps: LM
+    n_segments: S; segment_samples: L; segment_of [n]: the segment of each sample;
+    n_residual: the rows of r_aug that can be nonzero (n and the tied defects); n_steps: LM
     iterations; success: LM converged.
     """
 
@@ -659,6 +709,7 @@ class OutputErrorFit(NamedTuple):
     states_v: np.ndarray
     n_segments: int
     segment_samples: int
+    segment_of: np.ndarray
     n_residual: int
     n_steps: int
     success: bool
@@ -668,7 +719,7 @@ def _check_problem(problem: Problem) -> None:
     src = problem.source or problem.name or "output_error"
     if problem.n < 4:
         raise FricjaxError(f"{where(src, '/x')}: output error needs >= 4 kept samples")
-    if needs_input(problem.model) and not np.any(problem.u):
+    if needs_input(problem.model) and not np.any(problem.drive_input):
         raise FricjaxError(f"{where(src, '/u')}: all zero; the measured_input model has no drive")
 
 
@@ -942,7 +993,8 @@ def _row_fit(
         states_v=x_aug[P + S : P + 2 * S],
         n_segments=S,
         segment_samples=seg.L,
-        n_residual=int(r.shape[0]),
+        segment_of=seg.seg,
+        n_residual=n + 2 * int(np.sum(seg.tie)),
         n_steps=int(out.n_steps[b]),
         success=bool(out.success[b]),
     )

@@ -22,6 +22,7 @@ specialise on them at trace time.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -152,6 +153,14 @@ class Problem:
             rule (:meth:`~fricjax.model.system.Model.rest_force`); set by the diagnosis
             from the noise level (|v| < 4·σ_v). ``None``: the seed's sliding law everywhere.
         axis: ``"linear"`` or ``"rotary"`` (the config's), for the units of what is said.
+        drive: float64 [n], the model's recorded input at these samples *as recorded*
+            (``u`` is filtered like ``m·a`` for the equation error when
+            ``[preprocess].filter_input``): what drives a simulation of the record (output
+            error, :attr:`drive_input`). ``None``: ``u`` itself.
+        joins: the first sample of each recording after the first, where this problem is
+            several recordings of one plant joined end to end (:func:`joined`); empty for
+            one recording. The body's state jumps there: the output error's segments
+            start afresh at a join (:func:`fricjax.output_error.segmentation`).
     """
 
     model: Model
@@ -168,10 +177,21 @@ class Problem:
     window: tuple[int, int] | None = None
     rest: np.ndarray | None = None
     axis: str = "linear"
+    drive: np.ndarray | None = None
+    joins: tuple[int, ...] = ()
 
     @property
     def n(self) -> int:
         return int(self.t.shape[0])
+
+    @property
+    def drive_input(self) -> np.ndarray:
+        """[n] the input a simulation of the record is driven by: the recorded input,
+        unfiltered. The equation error's ``u`` is filtered like ``m·a`` so that the two
+        sides of its force balance see one filter; a simulation integrates the force the
+        body received, and a filtered input would hand it another (a test with content near
+        the filter's cutoff loses or shifts it: tens of newtons on a designed multisine)."""
+        return self.u if self.drive is None else self.drive
 
     @property
     def signals(self) -> Signals:
@@ -328,6 +348,8 @@ def build_problem(
     # the model's measured drive reads it (bind_input)
     d = derivatives(rec.t, rec.x, settings, u=rec.u, source=rec.path or rec.name)
     u = d.u if d.u is not None else np.zeros_like(d.t)
+    kept = slice(settings.trim, rec.n - settings.trim)
+    drive = None if rec.u is None else np.asarray(rec.u, dtype=np.float64)[kept]
     return Problem(
         model=config.model,
         spec=spec,
@@ -341,6 +363,73 @@ def build_problem(
         source=rec.path,
         preprocess=settings,
         axis=config.axis.kind,
+        drive=drive,
+    )
+
+
+def joined(problems: Sequence[Problem]) -> Problem:
+    """Several preprocessed recordings of one plant and one model as one problem: their
+    samples end to end, every parameter shared (one run of tests, nothing changed on the
+    rig between them; where a level may have moved between runs, the diagnosis across
+    recordings judges that, :mod:`fricjax.diagnose.across`).
+
+    Each recording was preprocessed on its own, so no filter reaches across a join. Time
+    continues: recording ``m`` is shifted to start one sample step after ``m − 1`` ends,
+    so the joined ``t`` is uniform (a term of time then sees the tests in the order given,
+    back to back). ``joins`` marks where each later recording starts; the body's state
+    jumps there and the output error's segments start afresh (their continuity defect is
+    not tied across a join). Refused in one line: fewer than two, or recordings whose
+    model, parameters (the mass included), preprocessing or sample step differ."""
+    if len(problems) < 2:
+        raise FricjaxError("joined: needs at least two recordings")
+    first = problems[0]
+
+    def step(p: Problem) -> float:
+        return float((p.t[-1] - p.t[0]) / (p.n - 1)) if p.n > 1 else math.nan
+
+    dt = step(first)
+    for p in problems[1:]:
+        src = p.source or p.name or "recording"
+        if p.model != first.model or p.spec != first.spec:
+            raise FricjaxError(
+                f"{src}: its model or parameters (the mass included) differ from "
+                f"{first.source or first.name}'s; joined recordings share every parameter"
+            )
+        if p.preprocess != first.preprocess:
+            raise FricjaxError(f"{src}: preprocessed differently from the first recording")
+        if not math.isclose(step(p), dt, rel_tol=1e-6):
+            raise FricjaxError(
+                f"{where(src, '/t')}: sample step {step(p):.6g} s, the first recording's is "
+                f"{dt:.6g} s; resample one of them"
+            )
+    ts, joins, end = [], [], 0
+    for p in problems:
+        start = ts[-1][-1] + dt if ts else float(p.t[0])
+        ts.append(np.asarray(p.t, dtype=np.float64) - float(p.t[0]) + start)
+        if end:
+            joins.append(end)
+        end += p.n
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(p, name), dtype=np.float64) for p in problems])
+
+    rests = [p.rest for p in problems]
+    return Problem(
+        model=first.model,
+        spec=first.spec,
+        t=np.concatenate(ts),
+        x=cat("x"),
+        v=cat("v"),
+        a=cat("a"),
+        u=cat("u"),
+        name=" + ".join(p.name for p in problems),
+        checksum=" + ".join(p.checksum for p in problems),
+        source=" + ".join(str(p.source or p.name) for p in problems),
+        preprocess=first.preprocess,
+        rest=None if any(r is None for r in rests) else np.concatenate(rests),  # type: ignore[arg-type]
+        axis=first.axis,
+        drive=np.concatenate([p.drive_input for p in problems]),
+        joins=tuple(joins),
     )
 
 

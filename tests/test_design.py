@@ -151,8 +151,8 @@ def test_a_standard_test_that_separates_better_is_the_test_returned(short_axis) 
 
 def test_the_default_limits_are_what_the_record_did(short_axis) -> None:
     lim = record_limits(short_axis)
-    assert lim.u_mid - lim.u_peak == pytest.approx(float(np.min(short_axis.u)))
-    assert lim.u_mid + lim.u_peak == pytest.approx(float(np.max(short_axis.u)))
+    assert lim.u_mid - lim.u_peak == pytest.approx(float(np.min(short_axis.drive_input)))
+    assert lim.u_mid + lim.u_peak == pytest.approx(float(np.max(short_axis.drive_input)))
     assert (lim.x_lo, lim.x_hi) == (float(np.min(short_axis.x)), float(np.max(short_axis.x)))
     assert lim.speed == pytest.approx(float(np.max(np.abs(short_axis.v))))
     given = api.parse_limits("20,,0.05", short_axis)

@@ -237,6 +237,9 @@ def test_the_command_line_runs_it_and_bad_input_is_one_line(axis_runs, capsys) -
         (["diagnose", *same, "-c", str(AXIS_CONFIG), "--validation", same[0]], "--validation"),
         (["diagnose", same[0], same[0], "-c", str(AXIS_CONFIG)], "the same recording"),
         (["diagnose", *same, "-c", str(bad), "--out", str(folder / "x")], "alpha"),
+        (["diagnose", same[0], "--joined", "-c", str(AXIS_CONFIG)], "--joined: needs two"),
+        (["diagnose", *same, "--joined"], "--config: missing"),
+        (["diagnose", same[0], same[0], "--joined", "-c", str(AXIS_CONFIG)], "the same recording"),
     ]
     for args, needle in cases:
         with pytest.raises(SystemExit) as exc:

@@ -33,7 +33,7 @@ from fricjax.output_error import (
     output_error_residual,
     segmentation,
 )
-from fricjax.problem import build_problem
+from fricjax.problem import build_problem, joined
 from fricjax.refine import RefineSettings, refine, uncertainty
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -238,6 +238,64 @@ def test_jacobian_along_directions_is_the_whole_one_on_their_columns(open_loop):
     cols = [*chosen, *range(P, P + 2 * S)]
     atol = 1e-13 * float(np.max(np.abs(j_all)))
     np.testing.assert_allclose(j_some[:, cols], j_all[:, cols], rtol=1e-13, atol=atol)
+
+
+def test_joined_recordings_are_each_fitted_as_alone_with_shared_parameters(open_loop):
+    """Two recordings joined end to end (fricjax.problem.joined): no segment spans the join,
+    the join's continuity defect is not fitted (zero rows of r_aug and its Jacobian), and
+    every other row, value and derivative, is the one of its own recording alone; the
+    parameters' columns are shared."""
+    problem, fit = open_loop
+    t = np.arange(problem.n + 200) * 1e-3  # trimmed by the preprocessing, then cut to n
+    u = np.sin(2 * np.pi * 2.5 * t) - 1.5 * np.cos(2 * np.pi * 0.7 * t)
+    p = {k: jnp.asarray(v) for k, v in EMPS_TRUTH.items()}
+    clean = simulate(problem.model, p, jnp.asarray(t), 0.03, 0.0, jnp.asarray(u), substeps=8)
+    x = np.asarray(clean.x) + np.random.default_rng(1).normal(0.0, 1e-5, t.size)
+    raw = tomllib.loads((ROOT / "configs" / "emps.toml").read_text())
+    raw["preprocess"].pop("decimate")
+    cfg = parse_config(raw, source="emps (no decimation)")
+    second = build_problem(Recording(t=t, x=x, u=u, u_unit="V", name="second"), cfg)
+    second = replace(
+        second,
+        t=second.t[: problem.n],
+        x=second.x[: problem.n],
+        v=second.v[: problem.n],
+        a=second.a[: problem.n],
+        u=second.u[: problem.n],
+    )
+    both = joined([problem, second])
+    assert both.joins == (problem.n,) and both.n == 2 * problem.n
+    np.testing.assert_allclose(np.diff(both.t), np.diff(problem.t)[0], rtol=1e-9)
+    # one σ_x for the three (estimated, it would be each record's own, or pooled)
+    settings = OutputErrorSettings(segments=3, x_scale=1e-5)
+    seg = segmentation(both.n, 1e-3, settings, both.joins)
+    assert (seg.S, seg.L) == (6, fit.segment_samples)
+    np.testing.assert_array_equal(seg.tie, [1, 1, 0, 1, 1])
+    assert seg.starts[3] == problem.n and np.all(seg.ends[:3] == problem.n - 1)
+    # off the optimum, so that every defect row is non-zero
+    setups = [output_error_residual(pb, fit.params, settings) for pb in (problem, second, both)]
+    (r1, j1), (r2, j2), (r, j) = (
+        (np.asarray(a) for a in jacobian_at(s.residual, jnp.asarray(s.x0) + 1e-4)) for s in setups
+    )
+    n, P = problem.n, len(problem.spec.names)
+
+    def rows(r_: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # sample rows, position defects, velocity defects of a residual of m samples
+        S_ = (r_.shape[0] - m) // 2 + 1
+        return r_[:m], r_[m : m + S_ - 1], r_[m + S_ - 1 :]
+
+    s1, s2, s = rows(r1, n), rows(r2, n), rows(r, 2 * n)
+    np.testing.assert_allclose(s[0], np.concatenate([s1[0], s2[0]]), rtol=1e-9)
+    # rtol 1e-9: the second recording's time is shifted, which rounds it differently
+    for k in (1, 2):  # [defects of the first, the join's (zero), defects of the second]
+        np.testing.assert_allclose(s[k], np.concatenate([s1[k], [0.0], s2[k]]), rtol=1e-9)
+    join_rows = [2 * n + 2, 2 * n + 5 + 2]
+    np.testing.assert_array_equal(j[join_rows], 0.0)
+    # the parameters' columns: the first recording's rows, then the second's
+    scale = float(np.max(np.abs(j[: 2 * n, :P])))
+    np.testing.assert_allclose(
+        j[: 2 * n, :P], np.concatenate([j1[:n, :P], j2[:n, :P]]), rtol=0, atol=1e-9 * scale
+    )
 
 
 def test_continuity_defects_vanish_at_the_optimum(open_loop):
@@ -494,7 +552,26 @@ def test_output_error_recovers_the_open_loop_truth(open_loop):
 def test_a_constant_input_is_refused(open_loop):
     problem, _ = open_loop
     with pytest.raises(FricjaxError, match="/u: all zero"):
-        fit_output_error(replace(problem, u=np.zeros_like(problem.u)), EMPS_TRUTH)
+        zero = np.zeros_like(problem.u)
+        fit_output_error(replace(problem, u=zero, drive=zero), EMPS_TRUTH)
+
+
+def test_a_simulation_is_driven_by_the_input_as_recorded():
+    """The equation error's u is filtered like m·a ([preprocess].filter_input); the output
+    error simulates the body under the input as recorded: a designed multisine with content
+    above the filter's cutoff keeps it."""
+    t = np.arange(600) * 1e-3
+    u = np.sin(2 * np.pi * 3 * t) + 0.5 * np.sin(2 * np.pi * 150 * t)
+    raw = tomllib.loads((ROOT / "configs" / "emps.toml").read_text())
+    raw["preprocess"].update(filter_input=True, cutoff_hz=50.0)
+    raw["preprocess"].pop("decimate")
+    cfg = parse_config(raw, source="emps, input filtered")
+    pb = build_problem(Recording(t=t, x=1e-3 * np.sin(t), u=u, u_unit="V", name="r"), cfg)
+    trim = pb.preprocess.trim
+    np.testing.assert_array_equal(pb.drive_input, u[trim : t.size - trim])
+    assert np.max(np.abs(pb.u - pb.drive_input)) > 0.3  # the 150 Hz line, filtered out of u
+    setup = output_error_residual(pb, EMPS_TRUTH, OutputErrorSettings(segments=1))
+    np.testing.assert_array_equal(np.asarray(setup.residual.u)[0, : pb.n], pb.drive_input)
 
 
 # ---------------------------------------------------------------------------- slow

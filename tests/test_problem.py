@@ -227,3 +227,25 @@ def test_measured_force_reaches_the_drive_filtered_like_m_a() -> None:
     raw["model"]["measured_input"] = {"signal": "G"}
     with pytest.raises(FricjaxError, match="signal must be one of u, F"):
         parse_config(raw)
+
+
+def test_joined_recordings_continue_in_time_and_refuse_another_rate(twin_problem: Problem) -> None:
+    """``joined``: the samples end to end, time continuing one step after each recording,
+    the joins where each later one starts; recordings of another sample step or another
+    model are refused in one line."""
+    from fricjax.errors import FricjaxError
+    from fricjax.problem import joined
+
+    pb = twin_problem
+    half = replace(pb, t=pb.t[:100], x=pb.x[:100], v=pb.v[:100], a=pb.a[:100], u=pb.u[:100])
+    both = joined([pb, half])
+    dt = float(pb.t[1] - pb.t[0])
+    assert both.n == pb.n + 100 and both.joins == (pb.n,)
+    np.testing.assert_allclose(np.diff(both.t), dt, rtol=1e-9)
+    np.testing.assert_array_equal(both.x, np.concatenate([pb.x, pb.x[:100]]))
+    np.testing.assert_array_equal(both.drive_input, np.concatenate([pb.u, pb.u[:100]]))
+    slow = replace(half, t=pb.t[0] + 2 * (half.t - pb.t[0]))
+    for other, needle in ((slow, "sample step"), (replace(half, spec=ParamSpec(())), "model")):
+        with pytest.raises(FricjaxError, match=needle) as err:
+            joined([pb, other])
+        assert "\n" not in str(err.value)

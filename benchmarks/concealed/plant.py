@@ -214,13 +214,13 @@ class Plant:
         # just past the root, so the body starts with a (tiny) acceleration away from rest
         return float(t_b) + 1e-12, s
 
-    def simulate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """From rest at x = 0: ``(x, v, stuck)`` at the sample times ``t`` [n]; ``stuck``
-        marks the samples inside a stick (where v is exactly 0). Every slip phase starts
-        and ends at v = 0 (a breakaway, a reversal or a stop)."""
+    def simulate(self, t: np.ndarray, x0: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """From rest at ``x0`` [m] (default 0): ``(x, v, stuck)`` at the sample times ``t``
+        [n]; ``stuck`` marks the samples inside a stick (where v is exactly 0). Every slip
+        phase starts and ends at v = 0 (a breakaway, a reversal or a stop)."""
         n = t.size
         xs, vs, stuck = np.zeros(n), np.zeros(n), np.zeros(n, dtype=bool)
-        t_now, x, z, t_end = float(t[0]), 0.0, 0.0, float(t[-1])
+        t_now, x, z, t_end = float(t[0]), float(x0), 0.0, float(t[-1])
         s = self._direction(t_now, x, z)
         started = time.perf_counter()
         for _ in range(MAX_PHASES):

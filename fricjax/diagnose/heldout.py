@@ -78,12 +78,10 @@ def fixed_cost(
 FOLDS = 5
 
 
-def folds(n: int, segment_samples: int, segments: int, k: int) -> list[np.ndarray]:
-    """K held-out masks [n] over ``n`` samples cut into ``segments`` segments of
-    ``segment_samples``: segment s in fold s mod K (module docstring); each sample is held
-    out by exactly one fold."""
-    seg = np.minimum(np.arange(n) // segment_samples, segments - 1)
-    return [(seg % k) == j for j in range(k)]
+def folds(segment_of: np.ndarray, k: int) -> list[np.ndarray]:
+    """K held-out masks [n] over samples in the segments ``segment_of`` [n] (int): segment
+    s in fold s mod K (module docstring); each sample is held out by exactly one fold."""
+    return [(segment_of % k) == j for j in range(k)]
 
 
 @dataclass(frozen=True)
@@ -96,12 +94,12 @@ class CrossValidation:
     def judge(self, before: Fitted, after: Fitted, place: Mapping[str, Any]) -> Verdict:
         sup = before.superset
         f = before.fit
-        n, S = sup.record.n, f.n_segments
+        S = f.n_segments
         K = min(self.folds, S)
         on = f"{K} interleaved folds of the record's {S} segments"
         if K < 2:
             return Verdict("cross-validation", on, False, why="the record is one segment long")
-        held = folds(n, f.segment_samples, S, K)
+        held = folds(f.segment_of, K)
         samples = [(~h).astype(np.float64) for h in held]
         k = sup.n_directions(before.active)
         costs = []

@@ -52,6 +52,7 @@ candidates' output-error fits go through :func:`fit_candidates`.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -575,8 +576,7 @@ def vuong(best: Fitted, other: Fitted) -> tuple[float, int]:
     two explain the record equally well. Returns (t, S − 1); t large: ``best`` is better."""
     rec = best.superset.record
     d = ((other.fit.x_sim - rec.x) ** 2 - (best.fit.x_sim - rec.x) ** 2) / best.fit.x_scale**2
-    seg = np.minimum(np.arange(rec.n) // best.fit.segment_samples, best.fit.n_segments - 1)
-    return vuong_t(np.bincount(seg, weights=d))
+    return vuong_t(np.bincount(best.fit.segment_of, weights=d))
 
 
 def rebased(cf: CandidateFit, settings: OutputErrorSettings, nu: int) -> CandidateFit:
@@ -610,22 +610,27 @@ def lack_of_fit_p(fitted: Fitted, nu: int) -> float:
 
 def simulation_error(fitted: Fitted) -> float:
     """RMS of x_sim − x [m] of one open-loop simulation over the whole record from its first
-    recorded state (the figure a user sees when replaying the model); NaN where the
+    recorded state (the figure a user sees when replaying the model); recordings joined
+    into one problem are each simulated from their own first state. NaN where the
     simulator rejects the model."""
     pb = fitted.problem
     p = pb.spec.unflatten(jnp.asarray(fitted.theta))
-    try:
-        traj = simulate(
-            pb.model,
-            p,
-            jnp.asarray(pb.t),
-            float(pb.x[0]),
-            float(pb.v[0]),
-            jnp.asarray(pb.u),
-        )
-    except Exception:  # a model the simulator rejects: report no figure rather than fail
-        return math.nan
-    err = np.asarray(traj.x) - pb.x
+    bounds = [0, *pb.joins, pb.n]
+    errs = []
+    for a, b in itertools.pairwise(bounds):
+        try:
+            traj = simulate(
+                pb.model,
+                p,
+                jnp.asarray(pb.t[a:b]),
+                float(pb.x[a]),
+                float(pb.v[a]),
+                jnp.asarray(pb.drive_input[a:b]),
+            )
+        except Exception:  # a model the simulator rejects: report no figure rather than fail
+            return math.nan
+        errs.append(np.asarray(traj.x) - pb.x[a:b])
+    err = np.concatenate(errs)
     return float(np.sqrt(np.mean(err**2)))
 
 

@@ -467,7 +467,7 @@ def _unexplained(model: Fitted, p: float, nu: int) -> Finding:
     the cost over its share of the samples)."""
     pb, f = model.problem, model.fit
     r = (f.x_sim - pb.x) / f.x_scale
-    seg = np.minimum(np.arange(pb.n) // f.segment_samples, f.n_segments - 1)
+    seg = f.segment_of
     per = np.bincount(seg, weights=r**2) / np.bincount(seg)
     s = int(np.argmax(per))
     idx = np.flatnonzero(seg == s)

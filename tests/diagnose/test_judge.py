@@ -82,7 +82,9 @@ def test_a_searched_shape_pays_for_every_shape_it_could_have_taken(twin_problem)
 def _fitted(residual: np.ndarray, x: np.ndarray, segment: int) -> Fitted:
     n = x.shape[0]
     fit = SimpleNamespace(
-        x_sim=x + residual, x_scale=1.0, segment_samples=segment, n_segments=n // segment
+        x_sim=x + residual,
+        x_scale=1.0,
+        segment_of=np.minimum(np.arange(n) // segment, n // segment - 1),
     )
     sup = SimpleNamespace(record=SimpleNamespace(x=x, n=n))
     return Fitted(sup, (), fit)  # type: ignore[arg-type]

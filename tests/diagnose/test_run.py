@@ -50,6 +50,7 @@ def test_unexplained_names_the_segment_that_misfits_most() -> None:
         x_sim=x_sim,
         x_scale=sigma,
         segment_samples=L,
+        segment_of=np.arange(n) // L,
         n_segments=6,
         n_residual=n + 10,
         cost=float(np.sum(((x_sim - x) / sigma) ** 2)),
