@@ -112,6 +112,10 @@ def format_design(d: Design) -> str:
         f"Travel {fmt(d.limits.x_lo)}–{fmt(d.limits.x_hi)} m and speed ≤ {fmt(d.limits.speed)} "
         f"m/s kept by every model (largest excess {100 * d.violation:.2g} %)."
     )
+    lines.append(
+        "Run it from rest at the record's first position, record it, then judge both records "
+        "as one: fricjax diagnose REC NEXT_REC --joined --config C"
+    )
     return "\n".join(lines)
 
 
