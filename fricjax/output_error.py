@@ -613,7 +613,7 @@ def output_error_residual(
     v = np.asarray(problem.v, dtype=np.float64)
     u = np.asarray(problem.drive_input, dtype=np.float64)
     n = t.shape[0]
-    dt = float((t[-1] - t[0]) / (n - 1)) if n > 1 else math.nan
+    dt = problem.dt
     seg = segmentation(n, dt, settings, problem.joins)
     x_scale = settings.x_scale or noise_scale(x, problem.joins)
     known = {k: float(val) for k, val in start.items() if k in spec}

@@ -185,6 +185,13 @@ class Problem:
         return int(self.t.shape[0])
 
     @property
+    def dt(self) -> float:
+        """Sample step [s] (of the first recording where several are joined: each keeps its
+        own clock, so ``t`` restarts at a join)."""
+        k = self.joins[0] if self.joins else self.n
+        return float((self.t[k - 1] - self.t[0]) / (k - 1)) if k > 1 else math.nan
+
+    @property
     def drive_input(self) -> np.ndarray:
         """[n] the input a simulation of the record is driven by: the recorded input,
         unfiltered. The equation error's ``u`` is filtered like ``m·a`` so that the two
@@ -373,12 +380,13 @@ def joined(problems: Sequence[Problem]) -> Problem:
     rig between them; where a level may have moved between runs, the diagnosis across
     recordings judges that, :mod:`fricjax.diagnose.across`).
 
-    Each recording was preprocessed on its own, so no filter reaches across a join. Time
-    continues: recording ``m`` is shifted to start one sample step after ``m − 1`` ends,
-    so the joined ``t`` is uniform (a term of time then sees the tests in the order given,
-    back to back). ``joins`` marks where each later recording starts; the body's state
-    jumps there and the output error's segments start afresh (their continuity defect is
-    not tied across a join). Refused in one line: fewer than two, or recordings whose
+    Each recording was preprocessed on its own, so no filter reaches across a join. Each
+    keeps its own clock (``t`` as recorded, so it restarts at a join): a term of time (an
+    impact at t₀, a harmonic of the drive, a drift over the test) acts at the same instants
+    of every test, which is how ``fricjax design`` predicts the new test (from its own
+    t = 0). ``joins`` marks where each later recording starts; the body's state jumps there
+    and the output error's segments start afresh (their continuity defect is not tied
+    across a join). Refused in one line: fewer than two, or recordings whose
     model, parameters (the mass included), preprocessing or sample step differ."""
     if len(problems) < 2:
         raise FricjaxError("joined: needs at least two recordings")
@@ -402,10 +410,8 @@ def joined(problems: Sequence[Problem]) -> Problem:
                 f"{where(src, '/t')}: sample step {step(p):.6g} s, the first recording's is "
                 f"{dt:.6g} s; resample one of them"
             )
-    ts, joins, end = [], [], 0
+    joins, end = [], 0
     for p in problems:
-        start = ts[-1][-1] + dt if ts else float(p.t[0])
-        ts.append(np.asarray(p.t, dtype=np.float64) - float(p.t[0]) + start)
         if end:
             joins.append(end)
         end += p.n
@@ -417,7 +423,7 @@ def joined(problems: Sequence[Problem]) -> Problem:
     return Problem(
         model=first.model,
         spec=first.spec,
-        t=np.concatenate(ts),
+        t=cat("t"),
         x=cat("x"),
         v=cat("v"),
         a=cat("a"),

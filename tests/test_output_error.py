@@ -265,7 +265,8 @@ def test_joined_recordings_are_each_fitted_as_alone_with_shared_parameters(open_
     )
     both = joined([problem, second])
     assert both.joins == (problem.n,) and both.n == 2 * problem.n
-    np.testing.assert_allclose(np.diff(both.t), np.diff(problem.t)[0], rtol=1e-9)
+    np.testing.assert_array_equal(both.t, np.concatenate([problem.t, second.t]))  # own clocks
+    assert both.dt == pytest.approx(1e-3, rel=1e-9)
     # one σ_x for the three (estimated, it would be each record's own, or pooled)
     settings = OutputErrorSettings(segments=3, x_scale=1e-5)
     seg = segmentation(both.n, 1e-3, settings, both.joins)
@@ -286,7 +287,6 @@ def test_joined_recordings_are_each_fitted_as_alone_with_shared_parameters(open_
 
     s1, s2, s = rows(r1, n), rows(r2, n), rows(r, 2 * n)
     np.testing.assert_allclose(s[0], np.concatenate([s1[0], s2[0]]), rtol=1e-9)
-    # rtol 1e-9: the second recording's time is shifted, which rounds it differently
     for k in (1, 2):  # [defects of the first, the join's (zero), defects of the second]
         np.testing.assert_allclose(s[k], np.concatenate([s1[k], [0.0], s2[k]]), rtol=1e-9)
     join_rows = [2 * n + 2, 2 * n + 5 + 2]

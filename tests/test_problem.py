@@ -229,10 +229,10 @@ def test_measured_force_reaches_the_drive_filtered_like_m_a() -> None:
         parse_config(raw)
 
 
-def test_joined_recordings_continue_in_time_and_refuse_another_rate(twin_problem: Problem) -> None:
-    """``joined``: the samples end to end, time continuing one step after each recording,
-    the joins where each later one starts; recordings of another sample step or another
-    model are refused in one line."""
+def test_joined_recordings_keep_their_clocks_and_refuse_another_rate(twin_problem: Problem) -> None:
+    """``joined``: the samples end to end, each recording on its own clock, the joins where
+    each later one starts; recordings of another sample step or another model are refused
+    in one line."""
     from fricjax.errors import FricjaxError
     from fricjax.problem import joined
 
@@ -241,7 +241,8 @@ def test_joined_recordings_continue_in_time_and_refuse_another_rate(twin_problem
     both = joined([pb, half])
     dt = float(pb.t[1] - pb.t[0])
     assert both.n == pb.n + 100 and both.joins == (pb.n,)
-    np.testing.assert_allclose(np.diff(both.t), dt, rtol=1e-9)
+    np.testing.assert_array_equal(both.t, np.concatenate([pb.t, pb.t[:100]]))
+    assert both.dt == pytest.approx(dt, rel=1e-12)
     np.testing.assert_array_equal(both.x, np.concatenate([pb.x, pb.x[:100]]))
     np.testing.assert_array_equal(both.drive_input, np.concatenate([pb.u, pb.u[:100]]))
     slow = replace(half, t=pb.t[0] + 2 * (half.t - pb.t[0]))

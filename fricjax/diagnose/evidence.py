@@ -138,9 +138,7 @@ def near_rest_band(problem: Problem, sigma_x: float, kappa: float = FLIP_KAPPA) 
     settings = problem.preprocess
     if settings is None:
         raise FricjaxError(f"{where(problem.source or None, 'preprocess')}: missing")
-    t = np.asarray(problem.t)
-    dt = float((t[-1] - t[0]) / (t.shape[0] - 1))
-    gain_v, _ = noise_gains(settings, 1.0 / dt)
+    gain_v, _ = noise_gains(settings, 1.0 / problem.dt)
     speed = float(kappa * sigma_x * gain_v)
     v: Float[np.ndarray, " n"] = np.asarray(problem.v)
     return NearRest(speed, float(kappa), np.abs(v) < speed)
