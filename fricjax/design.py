@@ -68,7 +68,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-import equinox as eqx
 import h5py
 import jax
 import jax.numpy as jnp
@@ -387,9 +386,11 @@ def project(u: Float[np.ndarray, " n"], plan: Plan, limits: Limits) -> np.ndarra
 
 
 class Scaled(NamedTuple):
-    """A rival's scaled parameters z = (θ − θ̂)/σ_θ: the free ones' σ_θ [k] and σ_x²·C⁻¹
-    [k, k] (the old record's information on z, times σ_x²)."""
+    """A rival in the scaled parameters z: values of every parameter, the free ones' names,
+    their σ_θ [k] and σ_x²·C⁻¹ [k, k] (the old record's information on z, times σ_x²)."""
 
+    params: dict[str, Array]
+    free: tuple[str, ...]
     std: Array
     prior: Array
 
@@ -406,111 +407,93 @@ def scale_rival(r: Rival, sigma: float) -> Scaled:
     np.fill_diagonal(corr, 1.0)
     w, v = np.linalg.eigh(0.5 * (corr + corr.T))
     prior = (v / np.maximum(w, CORR_FLOOR)) @ v.T * sigma**2
-    return Scaled(jnp.asarray(std), jnp.asarray(prior))
-
-
-class Stacked(eqx.Module):
-    """The rivals as one model, so that one simulation program serves them all (one trace,
-    one compilation, the rivals a vmapped batch).
-
-    model: every term any rival has (the base's first); names: its parameters [P];
-    theta [R, P]: each rival's values, a term it lacks at its null (amplitudes 0, shape
-    parameters at another rival's fitted values, where the term's force is zero);
-    dirs [R, K, P]: the directions of its scaled parameters z, ``σ_θ`` on each free
-    parameter's unit row, zero rows padding to the largest count K; prior [R, K, K]: the
-    old record's information on z times σ_x² (:class:`Scaled`), the identity on the
-    padding (a zero column with a unit prior absorbs nothing)."""
-
-    model: Model = eqx.field(static=True)
-    names: tuple[str, ...] = eqx.field(static=True)
-    theta: Float[Array, "R P"]
-    dirs: Float[Array, "R K P"]
-    prior: Float[Array, "R K K"]
-
-
-def stack(rivals: Sequence[Rival], sigma: float) -> Stacked:
-    """:class:`Stacked` of ``rivals`` (σ_x [m] the record's noise)."""
-    terms: list = []
-    for r in rivals:
-        terms += [t for t in r.model.terms if t not in terms]
-    model = Model(tuple(terms))
-    names = tuple(q.name for q in model.parameters())
-    nulls = {q.name: q.null for q in model.parameters()}
-    shapes = {n: v for r in rivals for n, v in r.params.items()}  # a fitted shape per term
-    theta = np.array(
-        [
-            [
-                r.params[n]
-                if n in r.params
-                else (nulls[n] if math.isfinite(nulls[n]) else shapes[n])
-                for n in names
-            ]
-            for r in rivals
-        ]
+    return Scaled(
+        {k: jnp.asarray(val, dtype=jnp.float64) for k, val in r.params.items()},
+        r.free,
+        jnp.asarray(std),
+        jnp.asarray(prior),
     )
-    k = max(1, max(r.k for r in rivals))
-    dirs = np.zeros((len(rivals), k, len(names)))
-    prior = np.tile(np.eye(k), (len(rivals), 1, 1))
-    for i, r in enumerate(rivals):
-        sc = scale_rival(r, sigma)
-        for j, n in enumerate(r.free):
-            dirs[i, j, names.index(n)] = float(sc.std[j])
-        prior[i, : r.k, : r.k] = np.asarray(sc.prior)
-    return Stacked(model, names, jnp.asarray(theta), jnp.asarray(dirs), jnp.asarray(prior))
+
+
+def _trajectory(
+    model: Model,
+    s: Scaled,
+    z: Float[Array, " k"],
+    u: Float[Array, " n"],
+    plan: Plan,
+    substeps: int = SUBSTEPS,
+) -> tuple[Float[Array, " n"], Float[Array, " n"]]:
+    p = dict(s.params)
+    for i, name in enumerate(s.free):
+        p[name] = s.params[name] + s.std[i] * z[i]
+    t = jnp.arange(plan.n) * plan.dt
+    traj = simulate(model, p, t, plan.x0, 0.0, u, substeps=substeps)
+    return traj.x, traj.v
 
 
 def responses(
-    rivals: Stacked, u: Float[Array, " n"], plan: Plan, substeps: int = SUBSTEPS
-) -> tuple[Float[Array, "R n"], Float[Array, "R n"], Float[Array, "R n K"]]:
-    """Each rival's position [n], velocity [n] and scaled Jacobian J_z [n, K] on ``u``,
-    as one vmapped program (K forward tangents each, a padded direction giving a zero
-    column).
+    rivals: Sequence[Rival],
+    scaled: Sequence[Scaled],
+    u: Array,
+    plan: Plan,
+    substeps: int = SUBSTEPS,
+) -> tuple[list[Array], list[Array], list[Array]]:
+    """Each rival's position [n], velocity [n] and scaled Jacobian J_z [n, k] on ``u``.
 
     A gradient in ``u`` runs back through the Jacobians too: how much a rival can absorb
     depends on the input as much as the difference does (holding J_z fixed gave a gradient
     of the wrong sign on the example axis, against central differences)."""
-    t = jnp.arange(plan.n) * plan.dt
+    xs, vs, js = [], [], []
+    for r, s in zip(rivals, scaled, strict=True):
+        z0 = jnp.zeros(len(s.free))
 
-    def run(theta: Array) -> tuple[Array, Array]:
-        p = {name: theta[i] for i, name in enumerate(rivals.names)}
-        traj = simulate(rivals.model, p, t, plan.x0, 0.0, u, substeps=substeps)
-        return traj.x, traj.v
+        def pos(z: Array, r: Rival = r, s: Scaled = s) -> Array:
+            return _trajectory(r.model, s, z, u, plan, substeps)[0]
 
-    def one(theta: Array, dirs: Array) -> tuple[Array, Array, Array]:
-        x, v = run(theta)
-        tangents = jax.vmap(lambda d: jax.jvp(lambda th: run(th)[0], (theta,), (d,))[1])(dirs)
-        return x, v, tangents.T
-
-    return jax.vmap(one)(rivals.theta, rivals.dirs)
+        x, v = _trajectory(r.model, s, z0, u, plan, substeps)
+        xs.append(x)
+        vs.append(v)
+        js.append(jax.jacfwd(pos)(z0) if s.free else jnp.zeros((plan.n, 0)))
+    return xs, vs, js
 
 
 def divergence(
-    xs: Float[Array, "R n"], js: Float[Array, "R n K"], prior: Float[Array, "R K K"], sigma: float
-) -> Float[Array, "R R"]:
+    xs: Sequence[Array], js: Sequence[Array], scaled: Sequence[Scaled], sigma: float
+) -> Float[Array, "K K"]:
     """D_ij of eq. [1] for every ordered pair (row i true, column j rival), diagonal 0."""
+    k = len(xs)
+    rows = []
+    for i in range(k):
+        row = []
+        for j in range(k):
+            if i == j:
+                row.append(jnp.zeros(()))
+                continue
+            delta = xs[i] - xs[j]
+            jz = js[j]
+            a = jz.T @ jz + scaled[j].prior
+            b = jz.T @ delta
+            absorbed = b @ jnp.linalg.solve(a, b) if jz.shape[1] else 0.0
+            row.append(jnp.maximum(delta @ delta - absorbed, 0.0) / sigma**2)
+        rows.append(jnp.stack(row))
+    return jnp.stack(rows)
 
-    def pair(x_i: Array, x_j: Array, jz: Array, p_j: Array) -> Array:
-        delta = x_i - x_j
-        b = jz.T @ delta
-        absorbed = b @ jnp.linalg.solve(jz.T @ jz + p_j, b)
-        return jnp.maximum(delta @ delta - absorbed, 0.0) / sigma**2
 
-    rival = jax.vmap(pair, (None, 0, 0, 0))  # over j
-    d = jax.vmap(rival, (0, None, None, None))(xs, xs, js, prior)
-    return jnp.where(jnp.eye(xs.shape[0], dtype=bool), 0.0, d)
-
-
-def _excess(xs: Float[Array, "R n"], vs: Float[Array, "R n"], limits: Limits) -> Array:
-    """[R, n] the largest relative excess of travel or speed at each sample (0 inside)."""
+def _excess(xs: Sequence[Array], vs: Sequence[Array], limits: Limits) -> Array:
+    """[K, n] the largest relative excess of travel or speed at each sample (0 inside)."""
     span = max(limits.x_hi - limits.x_lo, 1e-12)
-    travel = jnp.maximum(xs - limits.x_hi, 0.0) + jnp.maximum(limits.x_lo - xs, 0.0)
-    speed = jnp.maximum(jnp.abs(vs) - limits.speed, 0.0) / max(limits.speed, 1e-12)
-    return jnp.maximum(travel / span, speed)
+    out = []
+    for x, v in zip(xs, vs, strict=True):
+        travel = jnp.maximum(x - limits.x_hi, 0.0) + jnp.maximum(limits.x_lo - x, 0.0)
+        speed = jnp.maximum(jnp.abs(v) - limits.speed, 0.0) / max(limits.speed, 1e-12)
+        out.append(jnp.maximum(travel / span, speed))
+    return jnp.stack(out)
 
 
 def _objective(
     c: Array,
-    rivals: Stacked,
+    rivals: Sequence[Rival],
+    scaled: Sequence[Scaled],
     sigma: float,
     plan: Plan,
     limits: Limits,
@@ -518,9 +501,9 @@ def _objective(
 ) -> Array:
     """−(soft minimum over pairs of log(1 + D_ij)) + penalty: Adam minimises it."""
     u = profile(c, plan, limits)
-    xs, vs, js = responses(rivals, u, plan, SEARCH_SUBSTEPS)
-    d = divergence(xs, js, rivals.prior, sigma)
-    k = xs.shape[0]
+    xs, vs, js = responses(rivals, scaled, u, plan, SEARCH_SUBSTEPS)
+    d = divergence(xs, js, scaled, sigma)
+    k = len(rivals)
     off = jnp.log1p(d[~np.eye(k, dtype=bool)])
     tau = settings.temperature
     softmin = -tau * jax.nn.logsumexp(-off / tau)
@@ -589,12 +572,12 @@ def design(
         raise FricjaxError(f"{where('design', 'candidates')}: at least two models to separate")
     limits = limits or record_limits(problem)
     plan = plan_for(problem, duration)
-    stacked = stack(rivals, sigma)
+    scaled = [scale_rival(r, sigma) for r in rivals]
 
     def loss(c: Array) -> Array:
-        return _objective(c, stacked, sigma, plan, limits, settings)
+        return _objective(c, rivals, scaled, sigma, plan, limits, settings)
 
-    assess = _assessor(stacked, sigma, plan, limits)
+    assess = _assessor(rivals, scaled, sigma, plan, limits)
 
     def score(u: np.ndarray) -> tuple[float, float]:
         d, _, violation = assess(u)
@@ -714,16 +697,16 @@ def _standard(judged: tuple[np.ndarray, np.ndarray, float]) -> dict[str, float]:
 
 
 def _assessor(
-    rivals: Stacked, sigma: float, plan: Plan, limits: Limits
+    rivals: Sequence[Rival], scaled: Sequence[Scaled], sigma: float, plan: Plan, limits: Limits
 ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, float]]:
-    """``u`` [n] -> (D [R, R], the models' positions [R, n], the largest relative excess of
+    """``u`` [n] -> (D [K, K], the models' positions [K, n], the largest relative excess of
     a limit), compiled once for every profile judged."""
 
     @jax.jit
     def judge(u: Array) -> tuple[Array, Array, Array]:
-        xs, vs, js = responses(rivals, u, plan)
-        d = divergence(xs, js, rivals.prior, sigma)
-        return d, xs, jnp.max(_excess(xs, vs, limits))
+        xs, vs, js = responses(rivals, scaled, u, plan)
+        d = divergence(xs, js, scaled, sigma)
+        return d, jnp.stack(xs), jnp.max(_excess(xs, vs, limits))
 
     def assess(u: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         d, xs, violation = judge(jnp.asarray(u, dtype=jnp.float64))
@@ -861,23 +844,22 @@ def design_precision(
     limits = limits or record_limits(problem)
     plan = plan_for(problem, duration)
     scaled = scale_rival(model, sigma)
-    one = stack([model], sigma)
     idx = np.array([model.free.index(n) for n in focus])
 
     def loss(c: Array) -> Array:
         u = profile(c, plan, limits)
-        xs, vs, js = responses(one, u, plan, SEARCH_SUBSTEPS)
+        xs, vs, js = responses([model], [scaled], u, plan, SEARCH_SUBSTEPS)
         excess = _excess(xs, vs, limits)
         penalty = settings.penalty * jnp.sum(jnp.mean(excess**2, axis=1))
         return _focus_logdet(js[0], scaled, idx) + penalty
 
     @jax.jit
     def judge(u: Array) -> tuple[Array, Array, Array, Array]:
-        xs, vs, js = responses(one, u, plan)
+        xs, vs, js = responses([model], [scaled], u, plan)
         return (
             posterior_sigma(js[0], scaled, sigma),
             _focus_logdet(js[0], scaled, idx),
-            xs,
+            jnp.stack(xs),
             jnp.max(_excess(xs, vs, limits)),
         )
 

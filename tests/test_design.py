@@ -31,7 +31,6 @@ from fricjax.design import (
     record_limits,
     responses,
     scale_rival,
-    stack,
     standard_inputs,
 )
 from fricjax.design import _optimise as optimise
@@ -86,9 +85,9 @@ def test_a_pinned_rival_leaves_the_whole_difference_in_noise_units(short_axis) -
     rivals = [rival(short_axis, "base", BASE, {}), rival(short_axis, "stribeck", STRIBECK, {})]
     plan = plan_for(short_axis)
     u = jnp.asarray(short_axis.u[: plan.n])
-    stacked = stack(rivals, SIGMA)
-    xs, _, js = responses(stacked, u, plan)
-    d = np.asarray(divergence(xs, js, stacked.prior, SIGMA))
+    scaled = [scale_rival(r, SIGMA) for r in rivals]
+    xs, _, js = responses(rivals, scaled, u, plan)
+    d = np.asarray(divergence(xs, js, scaled, SIGMA))
     direct = positions(short_axis, rivals, u)
     plain = float(np.sum((direct[0] - direct[1]) ** 2)) / SIGMA**2
     assert plain > 100  # the Stribeck drop moves the body by many σ_x
@@ -108,9 +107,9 @@ def test_a_rival_free_to_refit_is_charged_only_what_its_parameters_cannot_absorb
     out = []
     for sd in (1e-9, 1e3):  # the rival's Fv pinned by the record, then left to the new test
         rivals = [truth, rival(short_axis, "base", nearby, {"Fv": sd})]
-        stacked = stack(rivals, SIGMA)
-        xs, _, js = responses(stacked, u, plan)
-        out.append(float(divergence(xs, js, stacked.prior, SIGMA)[0, 1]))
+        scaled = [scale_rival(r, SIGMA) for r in rivals]
+        xs, _, js = responses(rivals, scaled, u, plan)
+        out.append(float(divergence(xs, js, scaled, SIGMA)[0, 1]))
     direct = positions(short_axis, rivals, u)
     plain = float(np.sum((direct[0] - direct[1]) ** 2)) / SIGMA**2
     assert out[0] == pytest.approx(plain, rel=1e-6)
