@@ -392,10 +392,7 @@ def joined(problems: Sequence[Problem]) -> Problem:
         raise FricjaxError("joined: needs at least two recordings")
     first = problems[0]
 
-    def step(p: Problem) -> float:
-        return float((p.t[-1] - p.t[0]) / (p.n - 1)) if p.n > 1 else math.nan
-
-    dt = step(first)
+    dt = first.dt
     for p in problems[1:]:
         src = p.source or p.name or "recording"
         if p.model != first.model or p.spec != first.spec:
@@ -405,9 +402,9 @@ def joined(problems: Sequence[Problem]) -> Problem:
             )
         if p.preprocess != first.preprocess:
             raise FricjaxError(f"{src}: preprocessed differently from the first recording")
-        if not math.isclose(step(p), dt, rel_tol=1e-6):
+        if not math.isclose(p.dt, dt, rel_tol=1e-6):
             raise FricjaxError(
-                f"{where(src, '/t')}: sample step {step(p):.6g} s, the first recording's is "
+                f"{where(src, '/t')}: sample step {p.dt:.6g} s, the first recording's is "
                 f"{dt:.6g} s; resample one of them"
             )
     joins, end = [], 0
